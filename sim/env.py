@@ -1,0 +1,296 @@
+"""The robosuite scene shared by every task and the ``Task`` base class.
+
+A ``Task`` owns one robosuite environment (Panda arm, OSC controller with
+absolute world-frame pose input, no cameras) and adds what the product needs:
+a flat observation vector with named components, an ``ActionSpace``, a
+horizon, a success check, a seeded reset, privileged state for the scripted
+experts, and object poses for 3D playback.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.rotations import mat_to_rot6d, rot6d_to_rotvec, wxyz_to_xyzw
+from sim.spaces import ActionSpace, TeleopCommand, TeleopTarget
+
+TABLE_TOP_Z = 0.8
+TABLE_FULL_SIZE = (0.8, 0.8, 0.05)
+CONTROL_FREQ = 20
+EE_FRAME = "ee"
+
+# Robot joint noise at reset (radians, gaussian), seeded per episode.
+INIT_JOINT_NOISE = 0.02
+
+
+def _quiet_robosuite() -> None:
+    """robosuite logs a warning about private macros and info lines on every env."""
+    os.environ.setdefault("MUJOCO_GL", "disable")
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+
+
+@dataclass(frozen=True)
+class ObsSpec:
+    """Names and sizes of the observation vector's components, in order."""
+
+    parts: tuple[tuple[str, int], ...]
+
+    @property
+    def dim(self) -> int:
+        return sum(n for _, n in self.parts)
+
+    def slices(self) -> dict[str, slice]:
+        out, i = {}, 0
+        for name, n in self.parts:
+            out[name] = slice(i, i + n)
+            i += n
+        return out
+
+
+@dataclass(frozen=True)
+class StepResult:
+    obs: np.ndarray
+    success: bool
+    done: bool
+    t: int
+
+
+def _make_scene_env(task: Task, horizon: int):
+    """Builds the robosuite env for ``task``; imported lazily (robosuite is slow to import)."""
+    _quiet_robosuite()
+    from robosuite.controllers import load_composite_controller_config
+    from robosuite.environments.manipulation.manipulation_env import ManipulationEnv
+    from robosuite.models.arenas import TableArena
+    from robosuite.models.tasks import ManipulationTask
+
+    class SceneEnv(ManipulationEnv):
+        """Table-top Panda scene whose objects and placement come from ``task``."""
+
+        def __init__(self, **kwargs):
+            self.task = task
+            super().__init__(**kwargs)
+
+        def _load_model(self):
+            super()._load_model()
+            robot = self.robots[0]
+            robot.robot_model.set_base_xpos(robot.robot_model.base_xpos_offset["table"](TABLE_FULL_SIZE[0]))
+            arena = TableArena(
+                table_full_size=TABLE_FULL_SIZE,
+                table_friction=(1.0, 5e-3, 1e-4),
+                table_offset=np.array((0.0, 0.0, TABLE_TOP_Z)),
+            )
+            arena.set_origin([0, 0, 0])
+            self.scene_objects = self.task.build_objects()
+            self.model = ManipulationTask(
+                mujoco_arena=arena,
+                mujoco_robots=[robot.robot_model],
+                mujoco_objects=list(self.scene_objects.values()),
+            )
+
+        def reward(self, action=None):
+            return 0.0
+
+        def _check_success(self):
+            return False
+
+    config = load_composite_controller_config(robot="Panda")
+    arm = config["body_parts"]["right"]
+    arm["input_type"] = "absolute"
+    arm["input_ref_frame"] = "world"
+    return SceneEnv(
+        robots="Panda",
+        controller_configs=config,
+        initialization_noise={"magnitude": INIT_JOINT_NOISE, "type": "gaussian"},
+        use_camera_obs=False,
+        has_renderer=False,
+        has_offscreen_renderer=False,
+        control_freq=CONTROL_FREQ,
+        horizon=horizon,
+        ignore_done=True,
+        hard_reset=False,
+    )
+
+
+class Task(ABC):
+    """One simulated robot doing one task.
+
+    Subclasses define the scene (``build_objects``), the seeded placement
+    (``place``), the observation (``observe``), ``check_success`` and the
+    privileged state the scripted expert may read (``privileged``).
+    """
+
+    name: str
+    description: str
+    problem: str
+    horizon: int
+    obs_spec: ObsSpec
+    action_space: ActionSpace
+    object_name: str
+
+    def __init__(self) -> None:
+        self._env = None
+        self._t = 0
+        self._seed: int | None = None
+
+    # -- subclass hooks ---------------------------------------------------
+    @abstractmethod
+    def build_objects(self) -> dict:
+        """Name -> robosuite MujocoObject, created once per model load."""
+
+    @abstractmethod
+    def place(self, rng: np.random.Generator) -> None:
+        """Sets the seeded initial state of the scene's objects."""
+
+    @abstractmethod
+    def observe(self) -> np.ndarray:
+        """The observation vector (obs_spec.dim,), float64."""
+
+    @abstractmethod
+    def check_success(self) -> bool: ...
+
+    @abstractmethod
+    def privileged(self) -> dict:
+        """Ground truth the scripted expert may use (true poses, hidden goals)."""
+
+    def on_step(self) -> None:  # noqa: B027 - optional hook
+        """Called after each control step, before observing."""
+
+    # -- environment access -----------------------------------------------
+    @property
+    def env(self):
+        if self._env is None:
+            self._env = _make_scene_env(self, self.horizon)
+        return self._env
+
+    @property
+    def sim(self):
+        return self.env.sim
+
+    @property
+    def t(self) -> int:
+        return self._t
+
+    @property
+    def seed(self) -> int | None:
+        return self._seed
+
+    def reset(self, seed: int) -> np.ndarray:
+        """Seeded reset: the same seed gives the same initial state."""
+        env = self.env
+        self._seed = int(seed)
+        env.rng = np.random.default_rng([self._seed, 0])  # robot joint noise
+        env.reset()
+        self.place(np.random.default_rng([self._seed, 1]))
+        self.sim.forward()
+        self._settle()
+        self._t = 0
+        return self.observe()
+
+    def step(self, action: np.ndarray) -> StepResult:
+        """Applies an absolute action (10,) for one control step (1 / CONTROL_FREQ s)."""
+        action = self.action_space.validate(action)
+        env_action = np.concatenate([action[0:3], rot6d_to_rotvec(action[3:9]), action[9:10]])
+        self.env.step(env_action)
+        self._t += 1
+        self.on_step()
+        success = self.check_success()
+        return StepResult(self.observe(), success, success or self._t >= self.horizon, self._t)
+
+    def teleop(self, command: TeleopCommand) -> TeleopTarget:
+        """Converts an operator command into an absolute action from the current pose."""
+        pos, rot = self.ee_pose()
+        return self.action_space.apply_teleop(command, pos, rot)
+
+    def hold_action(self) -> np.ndarray:
+        """The action that keeps the current pose and gripper state."""
+        pos, rot = self.ee_pose()
+        return self.action_space.make_action(pos, rot, self.gripper_command())
+
+    def _settle(self, steps: int = 5) -> None:
+        """Lets objects come to rest while the arm holds its initial pose."""
+        hold = self.hold_action()
+        hold[9] = -1.0
+        for _ in range(steps):
+            self.env.step(np.concatenate([hold[0:3], rot6d_to_rotvec(hold[3:9]), [-1.0]]))
+            self.on_step()
+
+    # -- robot state --------------------------------------------------------
+    def _ee_site(self) -> int:
+        robot = self.env.robots[0]
+        return robot.eef_site_id["right"]
+
+    def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """End-effector (grip site) position (3,) and rotation matrix (3, 3), world frame."""
+        sid = self._ee_site()
+        return self.sim.data.site_xpos[sid].copy(), self.sim.data.site_xmat[sid].reshape(3, 3).copy()
+
+    def gripper_qpos(self) -> np.ndarray:
+        robot = self.env.robots[0]
+        return self.sim.data.qpos[robot._ref_gripper_joint_pos_indexes["right"]].copy()
+
+    def gripper_opening(self) -> float:
+        """Finger gap in metres (0.08 fully open)."""
+        q = self.gripper_qpos()
+        return float(q[0] - q[1])
+
+    def gripper_command(self) -> float:
+        """The last gripper command the controller holds (-1 open, +1 closed)."""
+        robot = self.env.robots[0]
+        cur = robot.gripper["right"].current_action
+        return float(cur[0]) if cur is not None and len(cur) else -1.0
+
+    def robot_obs(self) -> np.ndarray:
+        """eef_pos (3), eef_rot6d (6), gripper_qpos (2)."""
+        pos, rot = self.ee_pose()
+        return np.concatenate([pos, mat_to_rot6d(rot), self.gripper_qpos()])
+
+    # -- bodies ---------------------------------------------------------------
+    def body_id(self, name: str) -> int:
+        return self.sim.model.body_name2id(name)
+
+    def body_pose(self, body_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Position (3,) and quaternion (x, y, z, w) of a body."""
+        return self.sim.data.body_xpos[body_id].copy(), wxyz_to_xyzw(self.sim.data.body_xquat[body_id])
+
+    def set_free_body(self, obj, pos: np.ndarray, quat_xyzw: np.ndarray) -> None:
+        quat_wxyz = np.concatenate([quat_xyzw[3:], quat_xyzw[:3]])
+        self.sim.data.set_joint_qpos(obj.joints[0], np.concatenate([pos, quat_wxyz]))
+
+    def rest_on_table(self, obj, xy: np.ndarray, quat_xyzw: np.ndarray, clearance: float = 0.001) -> None:
+        """Places a free object at ``xy`` with its lowest point just above the table."""
+        self.set_free_body(obj, np.array([xy[0], xy[1], TABLE_TOP_Z + 0.5]), quat_xyzw)
+        self.sim.forward()
+        lowest = self._lowest_point(self.body_id(obj.root_body))
+        self.set_free_body(obj, np.array([xy[0], xy[1], TABLE_TOP_Z + 0.5 - lowest + TABLE_TOP_Z + clearance]), quat_xyzw)
+
+    def _lowest_point(self, root_body: int) -> float:
+        """Lowest world z over the bounding boxes of a body's (and its children's) geoms."""
+        m, d = self.sim.model, self.sim.data
+        bodies = {root_body} | {b for b in range(m.nbody) if m.body_rootid[b] == root_body and b != 0}
+        lowest = np.inf
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+        for g in range(m.ngeom):
+            if m.geom_bodyid[g] not in bodies:
+                continue
+            center, half = m.geom_aabb[g, :3], m.geom_aabb[g, 3:]
+            corners = (center + signs * half) @ d.geom_xmat[g].reshape(3, 3).T + d.geom_xpos[g]
+            lowest = min(lowest, float(corners[:, 2].min()))
+        return lowest
+
+    @abstractmethod
+    def object_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Frame name -> (position, quaternion xyzw) of each object, for playback."""
+
+    def metadata(self) -> dict:
+        return {"task": self.name, "object": self.object_name, "horizon": self.horizon}
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._env.close()
+            self._env = None
+

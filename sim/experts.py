@@ -1,0 +1,260 @@
+"""Scripted experts: the simulated operator.
+
+Every expert acts only through ``TeleopCommand``s, exactly like a human at the
+console, and may read the task's privileged state (true object poses, the
+intended drawer, the occluded cup). An expert is a list of phases (move to a
+target with a gripper command, until within tolerance, then optionally pause);
+the per-episode randomisation (approach height, speed, pauses, drawer) makes the
+demonstrations varied the way human demonstrations are.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sim.env import Task
+from sim.rotations import wrap_angle
+from sim.spaces import TeleopCommand
+
+OPEN, CLOSED = -1.0, 1.0
+# Gripper pointing down (grip-site z = world -z) at yaw 0. The Panda's fingers
+# close along the site's x axis, so a grasped bar lies along the site's y axis;
+# "yaw" is the heading of that y axis. At yaw 0 the fingers close along world y.
+_DOWN = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def gripper_yaw(rot: np.ndarray) -> float:
+    """Heading of the grip site's y axis (the axis a grasped bar lies along)."""
+    return float(np.arctan2(rot[1, 1], rot[0, 1]))
+
+
+@dataclass
+class Phase:
+    """Move towards ``target(task)`` (pos (3,), yaw) holding ``gripper``.
+
+    The phase ends when within ``tol`` metres (and 0.08 rad of yaw), or after
+    ``max_steps``; then the expert holds still for ``pause`` steps.
+    """
+
+    name: str
+    target: Callable[[Task], tuple[np.ndarray, float | None]]
+    gripper: float
+    tol: float = 0.01
+    pause: int = 0
+    max_steps: int = 200
+
+
+def command_towards(
+    task: Task, pos: np.ndarray, yaw: float | None, gripper: float, speed: float, gain: float = 1.0
+) -> TeleopCommand:
+    """A teleop command that moves the end effector towards ``pos`` / ``yaw``."""
+    cur_pos, cur_rot = task.ee_pose()
+    delta = (np.asarray(pos) - cur_pos) * gain
+    norm = np.linalg.norm(delta)
+    if norm > speed:
+        delta *= speed / norm
+    target_yaw = gripper_yaw(cur_rot) if yaw is None else yaw
+    desired = Rotation.from_euler("z", target_yaw).as_matrix() @ _DOWN
+    drot = Rotation.from_matrix(desired @ cur_rot.T).as_rotvec()
+    return TeleopCommand(tuple(delta), tuple(drot), gripper)
+
+
+def closest_yaw(current: float, target: float, symmetry: float) -> float:
+    """The yaw equivalent to ``target`` (mod ``symmetry``) nearest to ``current``."""
+    k = np.round((current - target) / symmetry)
+    return float(wrap_angle(target + k * symmetry))
+
+
+class Expert:
+    """Runs a list of phases, built per episode by ``plan``."""
+
+    name = "expert"
+
+    def __init__(self) -> None:
+        self.phases: list[Phase] = []
+        self._i = 0
+        self._steps_in_phase = 0
+        self._pause_left = 0
+        self.speed = 0.02
+
+    def plan(self, task: Task, rng: np.random.Generator) -> list[Phase]:
+        raise NotImplementedError
+
+    def reset(self, task: Task, rng: np.random.Generator) -> None:
+        self.speed = float(rng.uniform(0.012, 0.022))
+        self.phases = self.plan(task, rng)
+        self._i, self._steps_in_phase, self._pause_left = 0, 0, 0
+
+    @property
+    def phase(self) -> str:
+        return self.phases[min(self._i, len(self.phases) - 1)].name
+
+    @property
+    def done(self) -> bool:
+        return self._i >= len(self.phases)
+
+    def act(self, task: Task) -> TeleopCommand:
+        phase = self.phases[min(self._i, len(self.phases) - 1)]
+        pos, yaw = phase.target(task)
+        cmd = command_towards(task, pos, yaw, phase.gripper, self.speed)
+        if self.done:
+            return cmd
+        if self._pause_left > 0:
+            self._pause_left -= 1
+            if self._pause_left == 0:
+                self._advance()
+            return command_towards(task, task.ee_pose()[0], yaw, phase.gripper, self.speed)
+        self._steps_in_phase += 1
+        cur_pos, cur_rot = task.ee_pose()
+        yaw_ok = yaw is None or abs(wrap_angle(gripper_yaw(cur_rot) - yaw)) < 0.08
+        reached = np.linalg.norm(cur_pos - pos) < phase.tol and yaw_ok
+        if reached or self._steps_in_phase >= phase.max_steps:
+            if phase.pause > 0:
+                self._pause_left = phase.pause
+            else:
+                self._advance()
+        return cmd
+
+    def _advance(self) -> None:
+        self._i += 1
+        self._steps_in_phase = 0
+
+
+def _hold(steps: int) -> int:
+    return max(0, int(steps))
+
+
+class LiftExpert(Expert):
+    """Approach above the grasp point, descend, close, lift."""
+
+    name = "lift-scripted"
+
+    def plan(self, task: Task, rng: np.random.Generator) -> list[Phase]:
+        approach_h = float(rng.uniform(0.05, 0.14))
+        lift_h = float(rng.uniform(0.10, 0.16))
+        state = task.privileged()
+        cur_yaw = gripper_yaw(task.ee_pose()[1])
+        yaw = closest_yaw(cur_yaw, state["grasp_yaw"], state["yaw_symmetry"])
+        depth = state["grasp_depth"]
+
+        def grasp_point(t: Task) -> np.ndarray:
+            return t.privileged()["grasp_point"]
+
+        def above(t: Task):
+            return grasp_point(t) + [0, 0, approach_h], yaw
+
+        def at(t: Task):
+            p = grasp_point(t) - [0, 0, depth]
+            p[2] = max(p[2], state["table_z"] + 0.008)
+            return p, yaw
+
+        grasped: dict[str, np.ndarray] = {}
+
+        def up(t: Task):
+            grasped.setdefault("p", t.ee_pose()[0])
+            return grasped["p"] + [0, 0, lift_h], yaw
+
+        return [
+            Phase("approach", above, OPEN, tol=0.012, pause=_hold(rng.integers(0, 5))),
+            Phase("descend", at, OPEN, tol=0.006, max_steps=60),
+            Phase("close", lambda t: (t.ee_pose()[0], yaw), CLOSED, tol=np.inf, pause=int(rng.integers(6, 10))),
+            Phase("lift", up, CLOSED, tol=0.01),
+        ]
+
+
+class CupStackExpert(Expert):
+    """Grasp the green cup near its rim, carry it over the red cup, lower, release."""
+
+    name = "cup-stack-scripted"
+
+    def plan(self, task: Task, rng: np.random.Generator) -> list[Phase]:
+        approach_h = float(rng.uniform(0.05, 0.12))
+        carry_z = task.privileged()["table_z"] + float(rng.uniform(0.17, 0.22))
+        release_gap = float(rng.uniform(0.006, 0.012))
+        retreat = float(rng.uniform(0.06, 0.10))
+        mem: dict[str, np.ndarray] = {}
+
+        def above_green(t: Task):
+            return t.privileged()["green_grasp_point"] + [0, 0, approach_h], None
+
+        def at_green(t: Task):
+            return t.privileged()["green_grasp_point"], None
+
+        def lift(t: Task):
+            p = mem.setdefault("grasp", t.ee_pose()[0])
+            return np.array([p[0], p[1], carry_z]), None
+
+        def _offset(t: Task) -> np.ndarray:
+            s = t.privileged()
+            return t.ee_pose()[0] - s["green_pos"]
+
+        def over_red(t: Task):
+            s = t.privileged()
+            target = s["red_pos"] + _offset(t)
+            return np.array([target[0], target[1], carry_z]), None
+
+        def lower(t: Task):
+            s = t.privileged()
+            target = s["red_pos"] + _offset(t)
+            drop = s["green_bottom_z"] - (s["red_floor_z"] + release_gap)
+            return np.array([target[0], target[1], t.ee_pose()[0][2] - drop]), None
+
+        def retreat_up(t: Task):
+            p = mem.setdefault("release", t.ee_pose()[0])
+            return p + [0, 0, retreat], None
+
+        hold = lambda t: (t.ee_pose()[0], None)  # noqa: E731
+        return [
+            Phase("approach", above_green, OPEN, tol=0.012, pause=_hold(rng.integers(0, 5))),
+            Phase("descend", at_green, OPEN, tol=0.006, max_steps=60),
+            Phase("close", hold, CLOSED, tol=np.inf, pause=int(rng.integers(6, 10))),
+            Phase("lift", lift, CLOSED, tol=0.015),
+            Phase("carry", over_red, CLOSED, tol=0.006, pause=_hold(rng.integers(2, 6))),
+            Phase("lower", lower, CLOSED, tol=0.005, max_steps=60),
+            Phase("release", hold, OPEN, tol=np.inf, pause=int(rng.integers(5, 8))),
+            Phase("retreat", retreat_up, OPEN, tol=0.01),
+        ]
+
+
+class OpenDrawerExpert(Expert):
+    """Reach the intended drawer's handle from above, grasp it, pull it open."""
+
+    name = "open-drawer-scripted"
+
+    def plan(self, task: Task, rng: np.random.Generator) -> list[Phase]:
+        approach_h = float(rng.uniform(0.05, 0.13))
+        pull = float(rng.uniform(0.14, 0.17))
+        via_h = float(rng.uniform(0.0, 0.08))
+        mem: dict[str, np.ndarray] = {}
+        drawer = task.privileged()["intended"]
+        # The handle is a bar along x: fingers close across it, along world y (yaw 0).
+        yaw = closest_yaw(gripper_yaw(task.ee_pose()[1]), 0.0, np.pi)
+
+        def handle(t: Task) -> np.ndarray:
+            return t.privileged()["handles"][drawer]
+
+        def above(t: Task):
+            return handle(t) + [0, 0, approach_h + via_h], yaw
+
+        def near(t: Task):
+            return handle(t) + [0, 0, approach_h], yaw
+
+        def at(t: Task):
+            return handle(t), yaw
+
+        def pull_out(t: Task):
+            p = mem.setdefault("grasp", t.ee_pose()[0])
+            return p + t.privileged()["pull_axis"] * pull, yaw
+
+        hold = lambda t: (t.ee_pose()[0], yaw)  # noqa: E731
+        return [
+            Phase("approach", above, OPEN, tol=0.015, pause=_hold(rng.integers(0, 5))),
+            Phase("align", near, OPEN, tol=0.01),
+            Phase("descend", at, OPEN, tol=0.006, max_steps=60),
+            Phase("close", hold, CLOSED, tol=np.inf, pause=int(rng.integers(6, 10))),
+            Phase("pull", pull_out, CLOSED, tol=0.01, max_steps=120),
+        ]

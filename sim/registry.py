@@ -1,0 +1,44 @@
+"""The task registry: ``make_task(name)`` and the matching scripted expert."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from sim.env import Task
+from sim.experts import CupStackExpert, Expert, LiftExpert, OpenDrawerExpert
+from sim.tasks.cup_stack import CupStackTask
+from sim.tasks.lift import LiftTask
+from sim.tasks.open_drawer import OpenDrawerTask
+
+TASKS: dict[str, Callable[[], Task]] = {
+    "lift-cube": lambda: LiftTask("cube"),
+    "lift-nut": lambda: LiftTask("nut"),
+    "lift-hammer": lambda: LiftTask("hammer"),
+    "lift-hook": lambda: LiftTask("hook"),
+    "cup-stack": CupStackTask,
+    "open-drawer": OpenDrawerTask,
+}
+
+EXPERTS: dict[str, Callable[[], Expert]] = {
+    "lift-cube": LiftExpert,
+    "lift-nut": LiftExpert,
+    "lift-hammer": LiftExpert,
+    "lift-hook": LiftExpert,
+    "cup-stack": CupStackExpert,
+    "open-drawer": OpenDrawerExpert,
+}
+
+
+def _check(name: str) -> None:
+    if name not in TASKS:
+        raise KeyError(f"unknown task {name!r}; registered tasks: {', '.join(TASKS)}")
+
+
+def make_task(name: str) -> Task:
+    _check(name)
+    return TASKS[name]()
+
+
+def make_expert(name: str) -> Expert:
+    _check(name)
+    return EXPERTS[name]()

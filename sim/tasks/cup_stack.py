@@ -1,0 +1,122 @@
+"""Cup stacking: pick the green cup and place it inside the red cup.
+
+Partial observability: the red cup's position is observed only while the
+gripper is farther than ``OCCLUSION_DISTANCE`` from it (near insertion the held
+cup "occludes" it); after that the observation holds the last seen value.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.env import TABLE_TOP_Z, ObsSpec, Task
+from sim.objects import CupGeometry, make_cup
+from sim.rotations import quat_to_rot6d
+from sim.spaces import ActionSpace
+
+OCCLUSION_DISTANCE = 0.12  # metres, gripper to red cup centre
+MIN_CUP_SEPARATION = 0.18
+GREEN = CupGeometry(inner_radius=0.022, outer_radius=0.028, height=0.085)
+RED = CupGeometry(inner_radius=0.040, outer_radius=0.047, height=0.045)
+RELEASED_OPENING = 0.065  # finger gap above which the green cup counts as let go
+
+CUP_OBS = ObsSpec(
+    (
+        ("eef_pos", 3),
+        ("eef_rot6d", 6),
+        ("gripper_qpos", 2),
+        ("green_pos", 3),
+        ("green_rot6d", 6),
+        ("red_pos_observed", 3),
+        ("green_to_eef_pos", 3),
+        ("red_observed_to_green_pos", 3),
+    )
+)
+
+
+class CupStackTask(Task):
+    name = "cup-stack"
+    description = "Pick the green cup and place it inside the red cup"
+    problem = "partial observability"
+    horizon = 300
+    obs_spec = CUP_OBS
+    action_space = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
+    object_name = "cups"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._red_seen = np.zeros(3)
+
+    def build_objects(self) -> dict:
+        self.green = make_cup("green_cup", GREEN, (0.15, 0.7, 0.2, 1.0), density=300)
+        self.red = make_cup("red_cup", RED, (0.8, 0.15, 0.12, 1.0), density=3000)
+        return {"green_cup": self.green, "red_cup": self.red}
+
+    def place(self, rng: np.random.Generator) -> None:
+        while True:
+            green = rng.uniform((-0.10, -0.18), (0.10, 0.18))
+            red = rng.uniform((-0.10, -0.18), (0.10, 0.18))
+            if np.linalg.norm(green - red) >= MIN_CUP_SEPARATION:
+                break
+        upright = np.array([0.0, 0.0, 0.0, 1.0])
+        self.rest_on_table(self.green, green, upright)
+        self.rest_on_table(self.red, red, upright)
+
+    @property
+    def _green_body(self) -> int:
+        return self.body_id(self.green.root_body)
+
+    @property
+    def _red_body(self) -> int:
+        return self.body_id(self.red.root_body)
+
+    def _red_visible(self) -> bool:
+        eef = self.ee_pose()[0]
+        return float(np.linalg.norm(eef - self.sim.data.body_xpos[self._red_body])) > OCCLUSION_DISTANCE
+
+    def reset(self, seed: int) -> np.ndarray:
+        self._red_seen = np.zeros(3)
+        return super().reset(seed)
+
+    def _settle(self, steps: int = 5) -> None:
+        super()._settle(steps)
+        self._red_seen = self.sim.data.body_xpos[self._red_body].copy()
+
+    def on_step(self) -> None:
+        if self._red_visible():
+            self._red_seen = self.sim.data.body_xpos[self._red_body].copy()
+
+    def observe(self) -> np.ndarray:
+        eef = self.robot_obs()
+        green_pos, green_quat = self.body_pose(self._green_body)
+        red = self._red_seen
+        return np.concatenate(
+            [eef, green_pos, quat_to_rot6d(green_quat), red, green_pos - eef[0:3], red - green_pos]
+        )
+
+    def _green_inside(self) -> bool:
+        green = self.sim.data.body_xpos[self._green_body]
+        red = self.sim.data.body_xpos[self._red_body]
+        centred = np.linalg.norm(green[:2] - red[:2]) < RED.inner_radius - GREEN.outer_radius + 0.006
+        green_bottom = green[2] - GREEN.half_height
+        red_rim = red[2] + RED.half_height
+        return bool(centred and green_bottom < red_rim - 0.02)
+
+    def check_success(self) -> bool:
+        return self._green_inside() and self.gripper_opening() > RELEASED_OPENING
+
+    def privileged(self) -> dict:
+        green = self.sim.data.body_xpos[self._green_body].copy()
+        red = self.sim.data.body_xpos[self._red_body].copy()
+        return {
+            "green_pos": green,
+            "red_pos": red,
+            "green_grasp_point": green + [0, 0, GREEN.half_height - 0.025],
+            "green_bottom_z": green[2] - GREEN.half_height,
+            "red_floor_z": red[2] - RED.half_height + RED.bottom,
+            "red_visible": self._red_visible(),
+            "table_z": TABLE_TOP_Z,
+        }
+
+    def object_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        return {"green_cup": self.body_pose(self._green_body), "red_cup": self.body_pose(self._red_body)}

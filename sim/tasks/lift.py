@@ -1,0 +1,161 @@
+"""Lift: pick an object up off the table.
+
+``lift-cube`` is the training distribution. ``lift-nut``, ``lift-hammer`` and
+``lift-hook`` put robosuite's RoundNut, Hammer and HookFrame in place of the
+cube (distribution shift): the observation layout is identical, so a policy
+trained on the cube runs on them unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sim.env import TABLE_TOP_Z, ObsSpec, Task
+from sim.rotations import quat_to_rot6d
+from sim.spaces import ActionSpace
+
+LIFT_HEIGHT = 0.04  # success: the object's root is this much above where it rested
+LIFT_WORKSPACE = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
+LIFT_OBS = ObsSpec(
+    (
+        ("eef_pos", 3),
+        ("eef_rot6d", 6),
+        ("gripper_qpos", 2),
+        ("object_pos", 3),
+        ("object_rot6d", 6),
+        ("object_to_eef_pos", 3),
+    )
+)
+
+
+@dataclass(frozen=True)
+class GraspSpec:
+    """Where the expert grasps an object, in the object's frame.
+
+    point: grasp point (3,); bar_axis: the local axis of the grasped bar, which
+    the gripper's x axis is aligned with so the fingers close across it;
+    symmetry: the bar's yaw symmetry (pi for a bar, pi/2 for a cube face).
+    """
+
+    point: tuple[float, float, float]
+    bar_axis: tuple[float, float, float]
+    symmetry: float = np.pi
+    grasp_depth: float = 0.0  # extra descent below the grasp point (m)
+
+
+def _make_cube(name: str):
+    from robosuite.models.objects import BoxObject
+
+    return BoxObject(name=name, size=[0.021, 0.021, 0.021], rgba=[0.85, 0.1, 0.1, 1.0])
+
+
+def _make_nut(name: str):
+    from robosuite.models.objects import RoundNutObject
+
+    return RoundNutObject(name=name)
+
+
+def _make_hammer(name: str):
+    from robosuite.models.objects import HammerObject
+
+    return HammerObject(
+        name=name,
+        handle_length=(0.16, 0.16),
+        handle_radius=(0.014, 0.014),
+        handle_density=(150, 150),
+        rng=np.random.default_rng(0),
+    )
+
+
+def _make_hook(name: str):
+    from robosuite.models.objects.composite import HookFrame
+
+    return HookFrame(name=name, frame_length=0.16, frame_height=0.12, frame_thickness=0.022, density=250)
+
+
+@dataclass(frozen=True)
+class LiftObject:
+    key: str
+    factory: object
+    grasp: GraspSpec
+    default_quat: tuple[float, float, float, float] | None = None  # before the random yaw
+
+
+LIFT_OBJECTS: dict[str, LiftObject] = {
+    "cube": LiftObject("cube", _make_cube, GraspSpec((0, 0, 0), (1, 0, 0), symmetry=np.pi / 2)),
+    "nut": LiftObject("nut", _make_nut, GraspSpec((0.06, 0, 0), (1, 0, 0))),
+    "hammer": LiftObject("hammer", _make_hammer, GraspSpec((0, 0, 0.02), (0, 0, 1))),
+    "hook": LiftObject("hook", _make_hook, GraspSpec((0.03, 0, 0.049), (1, 0, 0))),
+}
+
+
+class LiftTask(Task):
+    problem = "distribution shift"
+    horizon = 150
+    obs_spec = LIFT_OBS
+    action_space = LIFT_WORKSPACE
+
+    def __init__(self, object_key: str) -> None:
+        super().__init__()
+        if object_key not in LIFT_OBJECTS:
+            raise ValueError(f"unknown lift object {object_key!r}; known: {sorted(LIFT_OBJECTS)}")
+        self.spec = LIFT_OBJECTS[object_key]
+        self.object_name = object_key
+        self.name = f"lift-{object_key}"
+        self.description = f"Lift the {object_key} {LIFT_HEIGHT * 100:.0f} cm off the table"
+        if object_key == "cube":
+            self.problem = "training distribution"
+        self._rest_z = 0.0
+
+    def build_objects(self) -> dict:
+        self.obj = self.spec.factory(self.object_name)
+        return {self.object_name: self.obj}
+
+    def _base_quat(self) -> np.ndarray:
+        if self.spec.default_quat is not None:
+            return np.asarray(self.spec.default_quat, float)
+        init = getattr(self.obj, "init_quat", None)
+        return np.asarray(init if init is not None else (0, 0, 0, 1), float)
+
+    def place(self, rng: np.random.Generator) -> None:
+        xy = np.array([rng.uniform(-0.08, 0.08), rng.uniform(-0.12, 0.12)])
+        yaw = Rotation.from_euler("z", rng.uniform(-np.pi, np.pi))
+        quat = (yaw * Rotation.from_quat(self._base_quat())).as_quat()
+        self.rest_on_table(self.obj, xy, quat)
+
+    def _settle(self, steps: int = 5) -> None:
+        super()._settle(steps)
+        self._rest_z = float(self.sim.data.body_xpos[self._body][2])
+
+    @property
+    def _body(self) -> int:
+        return self.body_id(self.obj.root_body)
+
+    def observe(self) -> np.ndarray:
+        pos, quat = self.body_pose(self._body)
+        eef = self.robot_obs()
+        return np.concatenate([eef, pos, quat_to_rot6d(quat), pos - eef[0:3]])
+
+    def check_success(self) -> bool:
+        return bool(self.sim.data.body_xpos[self._body][2] > self._rest_z + LIFT_HEIGHT)
+
+    def privileged(self) -> dict:
+        pos, quat = self.body_pose(self._body)
+        rot = Rotation.from_quat(quat)
+        grasp_point = pos + rot.apply(self.spec.grasp.point)
+        bar = rot.apply(self.spec.grasp.bar_axis)
+        return {
+            "object_pos": pos,
+            "grasp_point": grasp_point,
+            "grasp_yaw": float(np.arctan2(bar[1], bar[0])),
+            "yaw_symmetry": self.spec.grasp.symmetry,
+            "grasp_depth": self.spec.grasp.grasp_depth,
+            "rest_z": self._rest_z,
+            "table_z": TABLE_TOP_Z,
+        }
+
+    def object_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        return {self.object_name: self.body_pose(self._body)}

@@ -1,0 +1,113 @@
+"""Open drawer: a cabinet with three drawers side by side; open the intended one.
+
+Action multi-modality: each episode has an intended drawer that the
+observation does not reveal. The intended drawer is ``seed % 3``, so
+consecutive seeds split evenly across the drawers. Success means the intended
+drawer is open by at least ``OPEN_DISTANCE`` (and no other drawer is).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sim.env import TABLE_TOP_Z, ObsSpec, Task
+from sim.objects import CabinetGeometry, make_cabinet
+from sim.spaces import ActionSpace
+
+OPEN_DISTANCE = 0.10  # metres of slide travel
+WRONG_DRAWER_TOLERANCE = 0.03  # other drawers may move this much
+CABINET = CabinetGeometry()
+CABINET_X = 0.10  # nominal cabinet centre, randomised per episode
+DRAWER_NAMES = ("right", "middle", "left")  # drawer 0 is at -y: the robot's right
+
+DRAWER_OBS = ObsSpec(
+    (
+        ("eef_pos", 3),
+        ("eef_rot6d", 6),
+        ("gripper_qpos", 2),
+        ("drawer_opening", CABINET.drawers),
+        ("handle_pos", 3 * CABINET.drawers),
+    )
+)
+
+
+class OpenDrawerTask(Task):
+    name = "open-drawer"
+    description = "Open the intended one of three drawers (not in the observation)"
+    problem = "action multi-modality"
+    horizon = 250
+    obs_spec = DRAWER_OBS
+    action_space = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
+    object_name = "cabinet"
+
+    def __init__(self, intended: int | None = None) -> None:
+        super().__init__()
+        if intended is not None and intended not in range(CABINET.drawers):
+            raise ValueError(f"intended drawer must be in 0..{CABINET.drawers - 1}, got {intended!r}")
+        self._fixed_intended = intended
+        self.intended = 0
+
+    def build_objects(self) -> dict:
+        self.cabinet = make_cabinet("cabinet")
+        return {"cabinet": self.cabinet}
+
+    def place(self, rng: np.random.Generator) -> None:
+        m = self.sim.model
+        root = self.body_id(self.cabinet.root_body)
+        m.body_pos[root] = [
+            CABINET_X + rng.uniform(-0.03, 0.03),
+            rng.uniform(-0.04, 0.04),
+            TABLE_TOP_Z + CABINET.wall,
+        ]
+        for i in range(CABINET.drawers):
+            self.sim.data.set_joint_qpos(self._joint(i), 0.0)
+            self.sim.data.set_joint_qvel(self._joint(i), 0.0)
+        # An even split over consecutive seeds: demonstrations cover every drawer equally.
+        seed = self.seed or 0
+        self.intended = seed % CABINET.drawers if self._fixed_intended is None else self._fixed_intended
+
+    def _joint(self, i: int) -> str:
+        return f"{self.cabinet.naming_prefix}slide{i}"
+
+    def openings(self) -> np.ndarray:
+        return np.array([self.sim.data.get_joint_qpos(self._joint(i)) for i in range(CABINET.drawers)])
+
+    def handle_positions(self) -> np.ndarray:
+        """(drawers, 3) handle centres in the world frame."""
+        ids = [self.sim.model.site_name2id(f"{self.cabinet.naming_prefix}handle_site{i}") for i in range(3)]
+        return self.sim.data.site_xpos[ids].copy()
+
+    def observe(self) -> np.ndarray:
+        return np.concatenate([self.robot_obs(), self.openings(), self.handle_positions().ravel()])
+
+    def check_success(self) -> bool:
+        opening = self.openings()
+        others = np.delete(opening, self.intended)
+        return bool(opening[self.intended] >= OPEN_DISTANCE and np.all(others < WRONG_DRAWER_TOLERANCE))
+
+    def opened_drawer(self) -> int | None:
+        """Which drawer is open past OPEN_DISTANCE (the most open one), if any."""
+        opening = self.openings()
+        i = int(np.argmax(opening))
+        return i if opening[i] >= OPEN_DISTANCE else None
+
+    def privileged(self) -> dict:
+        return {
+            "intended": self.intended,
+            "handles": self.handle_positions(),
+            "openings": self.openings(),
+            "pull_axis": np.array([-1.0, 0.0, 0.0]),
+            "table_z": TABLE_TOP_Z,
+        }
+
+    def metadata(self) -> dict:
+        return super().metadata() | {"intended_drawer": self.intended, "intended_name": DRAWER_NAMES[self.intended]}
+
+    def object_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        identity = Rotation.identity().as_quat()
+        root = self.body_id(self.cabinet.root_body)
+        poses = {"cabinet": self.body_pose(root)}
+        for i, handle in enumerate(self.handle_positions()):
+            poses[f"drawer_{DRAWER_NAMES[i]}"] = (handle, identity)
+        return poses
