@@ -1,0 +1,1 @@
+"""Diffusion policy, denoising-vector-field uncertainty, baselines, training (arrives with the policy issue)."""

@@ -1,0 +1,1 @@
+"""Simulated robots: task suite, action space, teleoperation command, scripted experts."""

@@ -266,7 +266,8 @@ class Task(ABC):
         self.set_free_body(obj, np.array([xy[0], xy[1], TABLE_TOP_Z + 0.5]), quat_xyzw)
         self.sim.forward()
         lowest = self._lowest_point(self.body_id(obj.root_body))
-        self.set_free_body(obj, np.array([xy[0], xy[1], TABLE_TOP_Z + 0.5 - lowest + TABLE_TOP_Z + clearance]), quat_xyzw)
+        z = TABLE_TOP_Z + 0.5 + (TABLE_TOP_Z + clearance - lowest)
+        self.set_free_body(obj, np.array([xy[0], xy[1], z]), quat_xyzw)
 
     def _lowest_point(self, root_body: int) -> float:
         """Lowest world z over the bounding boxes of a body's (and its children's) geoms."""
@@ -293,4 +294,3 @@ class Task(ABC):
         if self._env is not None:
             self._env.close()
             self._env = None
-

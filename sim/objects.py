@@ -115,6 +115,12 @@ class CabinetGeometry:
 DRAWER_COLORS = ("0.75 0.3 0.25 1", "0.3 0.6 0.3 1", "0.25 0.4 0.75 1")
 
 
+def _box(name: str, pos, size, attrs: str) -> str:
+    p = " ".join(f"{v:.5f}" for v in pos)
+    s = " ".join(f"{v:.5f}" for v in size)
+    return f'        <geom group="0" name="{name}" type="box" pos="{p}" size="{s}" {attrs}/>'
+
+
 def cabinet_xml(geom: CabinetGeometry = CabinetGeometry()) -> str:
     """MJCF for the cabinet; its frame is at the centre of its floor panel's top."""
     g = geom
@@ -129,19 +135,16 @@ def cabinet_xml(geom: CabinetGeometry = CabinetGeometry()) -> str:
         "    <body>",
         '      <body name="object">',
         # floor, roof, back, sides
-        f'        <geom group="0" name="floor" type="box" pos="0 0 {-g.wall / 2}" size="{depth / 2 + g.wall} {half_w} {g.wall / 2}" {wood}/>',
-        f'        <geom group="0" name="roof" type="box" pos="0 0 {2 * hz - g.wall * 1.5}" size="{depth / 2 + g.wall} {half_w} {g.wall / 2}" {wood}/>',
-        f'        <geom group="0" name="back" type="box" pos="{depth / 2 + g.wall / 2} 0 {hz - g.wall}" size="{g.wall / 2} {half_w} {hz}" {wood}/>',
+        _box("floor", (0, 0, -g.wall / 2), (depth / 2 + g.wall, half_w, g.wall / 2), wood),
+        _box("roof", (0, 0, 2 * hz - g.wall * 1.5), (depth / 2 + g.wall, half_w, g.wall / 2), wood),
+        _box("back", (depth / 2 + g.wall / 2, 0, hz - g.wall), (g.wall / 2, half_w, hz), wood),
     ]
     for k, y in enumerate(
         [-(inner_w / 2 + g.wall / 2)]
         + [g.drawer_y(i) + g.pitch / 2 for i in range(g.drawers - 1)]
         + [inner_w / 2 + g.wall / 2]
     ):
-        lines.append(
-            f'        <geom group="0" name="side{k}" type="box" pos="0 {y:.5f} {hz - g.wall}" '
-            f'size="{depth / 2} {g.wall / 2} {hz - g.wall}" {wood}/>'
-        )
+        lines.append(_box(f"side{k}", (0, y, hz - g.wall), (depth / 2, g.wall / 2, hz - g.wall), wood))
     h = g.handle_offset()
     for i in range(g.drawers):
         y = g.drawer_y(i)

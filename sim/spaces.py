@@ -120,7 +120,9 @@ class ActionSpace:
         if lo.shape != (3,) or hi.shape != (3,):
             raise ValueError(f"workspace bounds must be 3-vectors, got {self.pos_low!r}, {self.pos_high!r}")
         if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)):
-            raise ValueError(f"workspace bounds need finite pos_low < pos_high, got {self.pos_low!r}, {self.pos_high!r}")
+            raise ValueError(
+                f"workspace bounds need finite pos_low < pos_high, got {self.pos_low!r}, {self.pos_high!r}"
+            )
 
     @property
     def dim(self) -> int:

@@ -1,0 +1,1 @@
+"""Episodes (MCAP), datasets, and the names shared across packages."""

@@ -1,0 +1,1 @@
+"""Viser operator console (arrives with the console issue)."""

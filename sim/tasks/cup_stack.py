@@ -38,7 +38,7 @@ class CupStackTask(Task):
     name = "cup-stack"
     description = "Pick the green cup and place it inside the red cup"
     problem = "partial observability"
-    horizon = 300
+    horizon = 400
     obs_spec = CUP_OBS
     action_space = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
     object_name = "cups"
@@ -90,9 +90,7 @@ class CupStackTask(Task):
         eef = self.robot_obs()
         green_pos, green_quat = self.body_pose(self._green_body)
         red = self._red_seen
-        return np.concatenate(
-            [eef, green_pos, quat_to_rot6d(green_quat), red, green_pos - eef[0:3], red - green_pos]
-        )
+        return np.concatenate([eef, green_pos, quat_to_rot6d(green_quat), red, green_pos - eef[0:3], red - green_pos])
 
     def _green_inside(self) -> bool:
         green = self.sim.data.body_xpos[self._green_body]

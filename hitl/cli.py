@@ -1,0 +1,154 @@
+"""``hitl``: the project's command line.
+
+Subcommands:
+  tasks     list the registered tasks with their observation and action specs
+  demos     record scripted demonstrations as MCAP episodes
+  inspect   check episode files (and salvage truncated ones with --recover)
+  experts   measure scripted-expert success and write the table to docs/
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _cmd_tasks(args: argparse.Namespace) -> int:
+    from sim.registry import TASKS, make_task
+    from sim.spaces import ACTION_LABELS
+
+    rows = []
+    for name in TASKS:
+        task = make_task(name)  # cheap: the simulator is built on first reset
+        rows.append(
+            {
+                "task": name,
+                "problem": task.problem,
+                "description": task.description,
+                "horizon": task.horizon,
+                "observation": {"dim": task.obs_spec.dim, "parts": dict(task.obs_spec.parts)},
+                "action": {
+                    "dim": task.action_space.dim,
+                    "labels": list(ACTION_LABELS),
+                    "workspace_low": list(task.action_space.pos_low),
+                    "workspace_high": list(task.action_space.pos_high),
+                },
+            }
+        )
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    for r in rows:
+        parts = ", ".join(f"{k}({v})" for k, v in r["observation"]["parts"].items())
+        print(f"{r['task']:<12} {r['problem']:<22} horizon {r['horizon']:<4} {r['description']}")
+        print(f"{'':12} obs[{r['observation']['dim']}]: {parts}")
+        print(
+            f"{'':12} action[{r['action']['dim']}]: pos(3) rot6d(6) gripper(1), workspace "
+            f"{r['action']['workspace_low']} .. {r['action']['workspace_high']}"
+        )
+    return 0
+
+
+def _cmd_demos(args: argparse.Namespace) -> int:
+    from sim.demos import record_demos
+
+    paths = record_demos(args.task, args.episodes, args.out, seed=args.seed, progress=not args.quiet)
+    from storage.episodes import read_episode
+
+    ok = sum(bool(read_episode(p).outcome["success"]) for p in paths)
+    print(f"wrote {len(paths)} episodes ({ok} successful) to {Path(args.out).resolve()}")
+    return 0
+
+
+def _cmd_inspect(args: argparse.Namespace) -> int:
+    from storage.episodes import EpisodeReadError, read_episode
+
+    files: list[Path] = []
+    for p in map(Path, args.paths):
+        files += sorted(p.glob("*.mcap")) if p.is_dir() else [p]
+    bad = 0
+    for f in files:
+        try:
+            ep = read_episode(f, recover=args.recover)
+        except EpisodeReadError as exc:
+            bad += 1
+            print(json.dumps({"file": str(f), "ok": False, "error": exc.reason}))
+            continue
+        print(
+            json.dumps(
+                {
+                    "file": str(f),
+                    "ok": True,
+                    "recovered": ep.recovered,
+                    "task": ep.meta.get("task"),
+                    "seed": ep.meta.get("seed"),
+                    "steps": len(ep),
+                    "outcome": ep.outcome,
+                }
+            )
+        )
+    return 1 if bad else 0
+
+
+def _cmd_experts(args: argparse.Namespace) -> int:
+    from sim.demos import expert_table, score_experts
+    from sim.registry import TASKS
+
+    tasks = args.task or list(TASKS)
+    unknown = [t for t in tasks if t not in TASKS]
+    if unknown:
+        raise SystemExit(f"unknown task(s): {unknown}; registered: {list(TASKS)}")
+    scores = score_experts(tasks, args.episodes, seed=args.seed, workers=args.workers)
+    command = f"hitl experts --episodes {args.episodes} --seed {args.seed}"
+    table = expert_table(scores, command)
+    print(table)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(table)
+    return 0 if all(s.rate >= 0.95 for s in scores) else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="hitl", description="Human-in-the-loop robot fleet tools")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("tasks", help="list registered tasks with observation and action specs")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=_cmd_tasks)
+
+    p = sub.add_parser("demos", help="record scripted demonstrations (one MCAP file per episode)")
+    p.add_argument("--task", required=True)
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--seed", type=int, default=0, help="first episode seed; episode i uses seed + i")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_demos)
+
+    p = sub.add_parser("inspect", help="check episode files; --recover salvages truncated ones")
+    p.add_argument("paths", nargs="+", help="episode files or folders")
+    p.add_argument("--recover", action="store_true")
+    p.set_defaults(func=_cmd_inspect)
+
+    p = sub.add_parser("experts", help="measure scripted expert success (writes a markdown table)")
+    p.add_argument("--task", action="append", help="task id (repeatable); default: all")
+    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--seed", type=int, default=1000)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--out", type=Path, help="write the markdown table here (e.g. docs/experts.md)")
+    p.set_defaults(func=_cmd_experts)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (KeyError, ValueError, FileNotFoundError) as exc:
+        print(f"hitl {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,405 @@
+"""Episodes as MCAP files: one file per episode, JSON messages with JSON schemas.
+
+Two families of channel:
+
+- training data: ``/episode`` (metadata, first), ``/step`` (observation, action,
+  end-effector pose, gripper, success, source; one per control step) and
+  ``/outcome`` (last);
+- 3D playback for Foxglove: ``/tf`` (``foxglove.FrameTransform``) and
+  ``/poses/...`` (``foxglove.PoseInFrame``) for the end effector and objects.
+
+Vectors are stored as JSON float64, which round-trips exactly. The writer
+closes a chunk and flushes the file every ``flush_every`` steps, so a file cut
+off by a crash keeps every message up to the last flush; ``read_episode(path,
+recover=True)`` salvages them with the non-seeking reader.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.writer import CompressionType, Writer
+
+from storage import keys
+
+_VEC = {"type": "array", "items": {"type": "number"}}
+_VEC3 = {
+    "type": "object",
+    "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}},
+}
+_QUAT = {
+    "type": "object",
+    "properties": {k: {"type": "number"} for k in ("x", "y", "z", "w")},
+}
+_TIME = {
+    "type": "object",
+    "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0}},
+}
+SCHEMAS: dict[str, dict] = {
+    keys.SCHEMA_EPISODE: {
+        "type": "object",
+        "properties": {
+            "task": {"type": "string"},
+            "seed": {"type": "integer"},
+            "expert": {"type": "string"},
+            "object": {"type": "string"},
+            "obs_labels": {"type": "array", "items": {"type": "string"}},
+            "action_labels": {"type": "array", "items": {"type": "string"}},
+        },
+    },
+    keys.SCHEMA_STEP: {
+        "type": "object",
+        "properties": {
+            "t": {"type": "integer"},
+            "observation": _VEC,
+            "action": _VEC,
+            "ee_pose": {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT}},
+            "gripper": {"type": "number", "description": "finger gap (m)"},
+            "success": {"type": "boolean"},
+            "source": {"type": "string", "enum": list(keys.SOURCES)},
+        },
+    },
+    keys.SCHEMA_OUTCOME: {
+        "type": "object",
+        "properties": {"success": {"type": "boolean"}, "steps": {"type": "integer"}, "reason": {"type": "string"}},
+    },
+    # Foxglove well-known schemas (JSON encoding).
+    keys.SCHEMA_FRAME_TRANSFORM: {
+        "title": "foxglove.FrameTransform",
+        "type": "object",
+        "properties": {
+            "timestamp": _TIME,
+            "parent_frame_id": {"type": "string"},
+            "child_frame_id": {"type": "string"},
+            "translation": _VEC3,
+            "rotation": _QUAT,
+        },
+    },
+    keys.SCHEMA_POSE_IN_FRAME: {
+        "title": "foxglove.PoseInFrame",
+        "type": "object",
+        "properties": {
+            "timestamp": _TIME,
+            "frame_id": {"type": "string"},
+            "pose": {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT}},
+        },
+    },
+}
+
+CONTROL_PERIOD_NS = 50_000_000  # 20 Hz
+
+
+class EpisodeReadError(Exception):
+    """An episode file could not be read; the message names the file and what to do."""
+
+    def __init__(self, path: Path, reason: str) -> None:
+        self.path = Path(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")
+
+
+class TruncatedEpisodeError(EpisodeReadError):
+    """The file has no summary/footer (cut off while recording)."""
+
+
+@dataclass
+class Episode:
+    """A decoded episode. Arrays are float64, one row per control step."""
+
+    path: Path
+    meta: dict
+    obs: np.ndarray  # (T, obs_dim)
+    actions: np.ndarray  # (T, 10)
+    ee_pose: np.ndarray  # (T, 7) position + quaternion xyzw
+    gripper: np.ndarray  # (T,)
+    success: np.ndarray  # (T,) bool
+    sources: list[str]
+    outcome: dict | None  # None when the file was recovered from a truncation
+    recovered: bool = False
+    playback_messages: int = 0
+    steps_t: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+def _xyz(v) -> dict:
+    return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}
+
+
+def _quat(q) -> dict:
+    return {"x": float(q[0]), "y": float(q[1]), "z": float(q[2]), "w": float(q[3])}
+
+
+def _stamp(ns: int) -> dict:
+    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+
+
+class EpisodeWriter:
+    """Writes one episode to ``path``; use as a context manager.
+
+    Args:
+        path: the ``.mcap`` file to create (parents are created).
+        meta: episode metadata (task, seed, expert, object, ...), JSON-serialisable.
+        object_names: the objects whose poses are streamed for playback.
+        flush_every: close a chunk and flush the file every this many steps.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        meta: dict,
+        object_names: list[str] | tuple[str, ...] = (),
+        flush_every: int = 20,
+        start_time_ns: int | None = None,
+    ) -> None:
+        if flush_every < 1:
+            raise ValueError(f"flush_every must be >= 1, got {flush_every}")
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD, chunk_size=256 * 1024)
+        self._writer.start(profile=keys.MCAP_PROFILE, library="hitl")
+        self._flush_every = flush_every
+        self._t0 = time.time_ns() if start_time_ns is None else int(start_time_ns)
+        self._steps = 0
+        self._seq = 0
+        self._closed = False
+        schema_ids = {
+            name: self._writer.register_schema(name, "jsonschema", json.dumps(schema).encode())
+            for name, schema in SCHEMAS.items()
+        }
+
+        def channel(topic: str, schema: str) -> int:
+            return self._writer.register_channel(topic, "json", schema_ids[schema])
+
+        self._ch_episode = channel(keys.TOPIC_EPISODE, keys.SCHEMA_EPISODE)
+        self._ch_step = channel(keys.TOPIC_STEP, keys.SCHEMA_STEP)
+        self._ch_outcome = channel(keys.TOPIC_OUTCOME, keys.SCHEMA_OUTCOME)
+        self._ch_tf = channel(keys.TOPIC_TF, keys.SCHEMA_FRAME_TRANSFORM)
+        self._ch_ee = channel(keys.TOPIC_EE_POSE, keys.SCHEMA_POSE_IN_FRAME)
+        self._ch_objects = {
+            name: channel(keys.TOPIC_OBJECT_POSE.format(name=name), keys.SCHEMA_POSE_IN_FRAME) for name in object_names
+        }
+        self.meta = dict(meta)
+        self._writer.add_metadata("episode", {k: json.dumps(v) for k, v in self.meta.items()})
+        self._add(self._ch_episode, self._t0, self.meta)
+        self._writer.flush()
+
+    def _add(self, channel: int, ns: int, payload: dict) -> None:
+        self._writer.add_message(
+            channel, log_time=ns, publish_time=ns, sequence=self._seq, data=json.dumps(payload).encode()
+        )
+        self._seq += 1
+
+    def write_step(
+        self,
+        t: int,
+        obs: np.ndarray,
+        action: np.ndarray,
+        ee_pos: np.ndarray,
+        ee_quat: np.ndarray,
+        gripper: float,
+        success: bool,
+        source: str = keys.SOURCE_EXPERT,
+        objects: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+    ) -> None:
+        """One control step: the observation before the action, and the action taken."""
+        if source not in keys.SOURCES:
+            raise ValueError(f"source must be one of {keys.SOURCES}, got {source!r}")
+        obs = np.asarray(obs, dtype=np.float64)
+        action = np.asarray(action, dtype=np.float64)
+        if not (np.all(np.isfinite(obs)) and np.all(np.isfinite(action))):
+            raise ValueError(f"step {t}: observation/action must be finite")
+        ns = self._t0 + int(t) * CONTROL_PERIOD_NS
+        pose = {"position": _xyz(ee_pos), "orientation": _quat(ee_quat)}
+        self._add(
+            self._ch_step,
+            ns,
+            {
+                "t": int(t),
+                "observation": obs.tolist(),
+                "action": action.tolist(),
+                "ee_pose": pose,
+                "gripper": float(gripper),
+                "success": bool(success),
+                "source": source,
+            },
+        )
+        self._add_frame(ns, keys.EE_FRAME, ee_pos, ee_quat)
+        self._add(self._ch_ee, ns, {"timestamp": _stamp(ns), "frame_id": keys.WORLD_FRAME, "pose": pose})
+        for name, (pos, quat) in (objects or {}).items():
+            if name not in self._ch_objects:
+                raise KeyError(f"object {name!r} was not declared when the episode was opened")
+            self._add_frame(ns, name, pos, quat)
+            self._add(
+                self._ch_objects[name],
+                ns,
+                {
+                    "timestamp": _stamp(ns),
+                    "frame_id": keys.WORLD_FRAME,
+                    "pose": {"position": _xyz(pos), "orientation": _quat(quat)},
+                },
+            )
+        self._steps += 1
+        if self._steps % self._flush_every == 0:
+            self.flush()
+
+    def _add_frame(self, ns: int, child: str, pos, quat) -> None:
+        self._add(
+            self._ch_tf,
+            ns,
+            {
+                "timestamp": _stamp(ns),
+                "parent_frame_id": keys.WORLD_FRAME,
+                "child_frame_id": child,
+                "translation": _xyz(pos),
+                "rotation": _quat(quat),
+            },
+        )
+
+    def flush(self) -> None:
+        """Closes the current chunk and flushes it to disk."""
+        self._writer.flush()
+
+    def finish(self, success: bool, steps: int, reason: str = "") -> None:
+        ns = self._t0 + int(steps) * CONTROL_PERIOD_NS
+        self._add(self._ch_outcome, ns, {"success": bool(success), "steps": int(steps), "reason": reason})
+        self.close()
+
+    def close(self) -> None:
+        """Writes the summary and footer. An episode closed without ``finish`` has no outcome."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._writer.finish()
+        finally:
+            self._file.close()
+
+    def __enter__(self) -> EpisodeWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _decode(path: Path, messages) -> Episode:
+    meta: dict | None = None
+    outcome: dict | None = None
+    steps: list[dict] = []
+    playback = 0
+    for _schema, channel, message in messages:
+        if channel.topic in (keys.TOPIC_STEP, keys.TOPIC_EPISODE, keys.TOPIC_OUTCOME):
+            try:
+                payload = json.loads(message.data)
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise EpisodeReadError(path, f"corrupt message on {channel.topic}: {exc}") from exc
+            if channel.topic == keys.TOPIC_STEP:
+                steps.append(payload)
+            elif channel.topic == keys.TOPIC_EPISODE:
+                meta = payload
+            else:
+                outcome = payload
+        else:
+            playback += 1
+    if meta is None:
+        raise EpisodeReadError(path, f"no {keys.TOPIC_EPISODE} message: not a hitl episode, or cut off before it")
+    steps.sort(key=lambda s: s["t"])
+    try:
+        obs = np.array([s["observation"] for s in steps], dtype=np.float64)
+        actions = np.array([s["action"] for s in steps], dtype=np.float64)
+        ee = np.array(
+            [
+                [*(s["ee_pose"]["position"][k] for k in "xyz"), *(s["ee_pose"]["orientation"][k] for k in "xyzw")]
+                for s in steps
+            ],
+            dtype=np.float64,
+        )
+        n = len(steps)
+        obs = obs.reshape(n, -1)
+        actions = actions.reshape(n, -1)
+        ee = ee.reshape(n, 7)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise EpisodeReadError(path, f"malformed {keys.TOPIC_STEP} messages: {exc}") from exc
+    return Episode(
+        path=path,
+        meta=meta,
+        obs=obs,
+        actions=actions,
+        ee_pose=ee,
+        gripper=np.array([s["gripper"] for s in steps], dtype=np.float64),
+        success=np.array([s["success"] for s in steps], dtype=bool),
+        sources=[s["source"] for s in steps],
+        outcome=outcome,
+        playback_messages=playback,
+        steps_t=np.array([s["t"] for s in steps], dtype=np.int64),
+    )
+
+
+_TRUNCATED_HINT = (
+    "the file has no intact summary/footer, so it was probably cut off while recording. "
+    "read_episode(path, recover=True) (or `hitl inspect --recover FILE`) salvages every message up to "
+    "the last flushed chunk with the non-seeking MCAP reader"
+)
+
+
+def _recover_messages(path: Path) -> tuple[list, str | None]:
+    """Reads records in file order until the data ends or breaks; returns (messages, why it stopped)."""
+    out: list = []
+    with open(path, "rb") as f:
+        reader = NonSeekingReader(f, validate_crcs=True)
+        try:
+            for item in reader.iter_messages(log_time_order=False):
+                out.append(item)
+        except Exception as exc:  # noqa: BLE001 - any decode failure marks the truncation point
+            return out, f"{type(exc).__name__}: {exc}"
+    return out, None
+
+
+def read_episode(path: str | Path, recover: bool = False) -> Episode:
+    """Reads one episode file.
+
+    Args:
+        recover: for a file cut off while recording, return everything up to the
+            last flushed chunk (``Episode.recovered`` is True, ``outcome`` is None)
+            instead of raising ``TruncatedEpisodeError``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise EpisodeReadError(path, "no such file")
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f, validate_crcs=True)
+            messages = list(reader.iter_messages(log_time_order=False))
+        return _decode(path, messages)
+    except EpisodeReadError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - mcap raises several types for broken files
+        seek_error = f"{type(exc).__name__}: {exc}"
+    messages, stopped = _recover_messages(path)
+    if not messages:
+        raise EpisodeReadError(path, f"not a readable MCAP episode ({seek_error}; {stopped})")
+    if not recover:
+        raise TruncatedEpisodeError(
+            path, f"{_TRUNCATED_HINT} ({len(messages)} messages are recoverable; reader said: {seek_error})"
+        )
+    episode = _decode(path, messages)
+    episode.recovered = True
+    return episode
+
+
+__all__ = [
+    "Episode",
+    "EpisodeReadError",
+    "EpisodeWriter",
+    "McapError",
+    "TruncatedEpisodeError",
+    "read_episode",
+]
