@@ -29,9 +29,18 @@ INIT_JOINT_NOISE = 0.02
 
 
 def _quiet_robosuite() -> None:
-    """robosuite logs a warning about private macros and info lines on every env."""
+    """robosuite warns about private macros and optional robots on import, and logs every env.
+
+    Its logger's level is reset when robosuite is imported, so a filter (which
+    survives that) keeps only errors.
+    """
     os.environ.setdefault("MUJOCO_GL", "disable")
-    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+    logger = logging.getLogger("robosuite_logs")
+    if not any(getattr(f, "_hitl", False) for f in logger.filters):
+        only_errors = logging.Filter()
+        only_errors.filter = lambda record: record.levelno >= logging.ERROR  # type: ignore[method-assign]
+        only_errors._hitl = True  # type: ignore[attr-defined]
+        logger.addFilter(only_errors)
 
 
 @dataclass(frozen=True)
