@@ -54,10 +54,7 @@ def _cmd_tasks(args: argparse.Namespace) -> int:
 def _cmd_demos(args: argparse.Namespace) -> int:
     from sim.demos import record_demos
 
-    paths = record_demos(args.task, args.episodes, args.out, seed=args.seed, progress=not args.quiet)
-    from storage.episodes import read_episode
-
-    ok = sum(bool(read_episode(p).outcome["success"]) for p in paths)
+    paths, ok = record_demos(args.task, args.episodes, args.out, seed=args.seed, progress=not args.quiet)
     print(f"wrote {len(paths)} episodes ({ok} successful) to {Path(args.out).resolve()}")
     return 0
 

@@ -19,8 +19,13 @@ def episode_path(out: Path, task: str, seed: int) -> Path:
     return Path(out) / f"{task}_seed{seed:06d}.mcap"
 
 
-def record_demos(task_name: str, episodes: int, out: str | Path, seed: int = 0, progress: bool = True) -> list[Path]:
-    """Writes ``episodes`` expert episodes (seeds ``seed .. seed + episodes - 1``), one MCAP file each."""
+def record_demos(
+    task_name: str, episodes: int, out: str | Path, seed: int = 0, progress: bool = True
+) -> tuple[list[Path], int]:
+    """Writes ``episodes`` expert episodes (seeds ``seed .. seed + episodes - 1``), one MCAP file each.
+
+    Returns the files and how many episodes succeeded.
+    """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     task, expert = make_task(task_name), make_expert(task_name)
@@ -52,7 +57,7 @@ def record_demos(task_name: str, episodes: int, out: str | Path, seed: int = 0, 
             bar.set_postfix(success=f"{successes}/{len(paths)}")
     finally:
         task.close()
-    return paths
+    return paths, successes
 
 
 def _labels(task) -> list[str]:

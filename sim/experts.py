@@ -100,16 +100,16 @@ class Expert:
     def act(self, task: Task) -> TeleopCommand:
         phase = self.phases[min(self._i, len(self.phases) - 1)]
         pos, yaw = phase.target(task)
-        cmd = command_towards(task, pos, yaw, phase.gripper, self.speed)
-        if self.done:
-            return cmd
-        if self._pause_left > 0:
+        cur_pos, cur_rot = task.ee_pose()
+        if self._pause_left > 0 and not self.done:
             self._pause_left -= 1
             if self._pause_left == 0:
                 self._advance()
-            return command_towards(task, task.ee_pose()[0], yaw, phase.gripper, self.speed)
+            return command_towards(task, cur_pos, yaw, phase.gripper, self.speed)
+        cmd = command_towards(task, pos, yaw, phase.gripper, self.speed)
+        if self.done:
+            return cmd
         self._steps_in_phase += 1
-        cur_pos, cur_rot = task.ee_pose()
         yaw_ok = yaw is None or abs(wrap_angle(gripper_yaw(cur_rot) - yaw)) < 0.08
         reached = np.linalg.norm(cur_pos - pos) < phase.tol and yaw_ok
         if reached or self._steps_in_phase >= phase.max_steps:
@@ -122,10 +122,6 @@ class Expert:
     def _advance(self) -> None:
         self._i += 1
         self._steps_in_phase = 0
-
-
-def _hold(steps: int) -> int:
-    return max(0, int(steps))
 
 
 class LiftExpert(Expert):
@@ -159,7 +155,7 @@ class LiftExpert(Expert):
             return grasped["p"] + [0, 0, lift_h], yaw
 
         return [
-            Phase("approach", above, OPEN, tol=0.012, pause=_hold(rng.integers(0, 5))),
+            Phase("approach", above, OPEN, tol=0.012, pause=int(rng.integers(0, 5))),
             Phase("descend", at, OPEN, tol=0.006, max_steps=60),
             Phase("close", lambda t: (t.ee_pose()[0], yaw), CLOSED, tol=np.inf, pause=int(rng.integers(6, 10))),
             Phase("lift", up, CLOSED, tol=0.01),
@@ -209,11 +205,11 @@ class CupStackExpert(Expert):
 
         hold = lambda t: (t.ee_pose()[0], None)  # noqa: E731
         return [
-            Phase("approach", above_green, OPEN, tol=0.012, pause=_hold(rng.integers(0, 5))),
+            Phase("approach", above_green, OPEN, tol=0.012, pause=int(rng.integers(0, 5))),
             Phase("descend", at_green, OPEN, tol=0.006, max_steps=60),
             Phase("close", hold, CLOSED, tol=np.inf, pause=int(rng.integers(6, 10))),
             Phase("lift", lift, CLOSED, tol=0.015),
-            Phase("carry", over_red, CLOSED, tol=0.006, pause=_hold(rng.integers(2, 6))),
+            Phase("carry", over_red, CLOSED, tol=0.006, pause=int(rng.integers(2, 6))),
             Phase("lower", lower, CLOSED, tol=0.005, max_steps=60),
             Phase("release", hold, OPEN, tol=np.inf, pause=int(rng.integers(5, 8))),
             Phase("retreat", retreat_up, OPEN, tol=0.01),
@@ -252,7 +248,7 @@ class OpenDrawerExpert(Expert):
 
         hold = lambda t: (t.ee_pose()[0], yaw)  # noqa: E731
         return [
-            Phase("approach", above, OPEN, tol=0.015, pause=_hold(rng.integers(0, 5))),
+            Phase("approach", above, OPEN, tol=0.015, pause=int(rng.integers(0, 5))),
             Phase("align", near, OPEN, tol=0.01),
             Phase("descend", at, OPEN, tol=0.006, max_steps=60),
             Phase("close", hold, CLOSED, tol=np.inf, pause=int(rng.integers(6, 10))),

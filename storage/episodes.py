@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -123,7 +123,6 @@ class Episode:
     outcome: dict | None  # None when the file was recovered from a truncation
     recovered: bool = False
     playback_messages: int = 0
-    steps_t: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -339,7 +338,6 @@ def _decode(path: Path, messages) -> Episode:
         sources=[s["source"] for s in steps],
         outcome=outcome,
         playback_messages=playback,
-        steps_t=np.array([s["t"] for s in steps], dtype=np.int64),
     )
 
 

@@ -153,7 +153,8 @@ def test_dataset_config_validation():
 
 def test_recorded_demos_are_readable_training_data(tmp_path):
     out = tmp_path / "lift"
-    paths = record_demos("lift-cube", 2, out, seed=0, progress=False)
+    paths, successes = record_demos("lift-cube", 2, out, seed=0, progress=False)
+    assert successes == 2
     assert [p.name for p in paths] == ["lift-cube_seed000000.mcap", "lift-cube_seed000001.mcap"]
     ep = read_episode(paths[0])
     assert ep.meta["task"] == "lift-cube" and ep.meta["seed"] == 0 and ep.meta["object"] == "cube"
