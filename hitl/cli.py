@@ -5,6 +5,11 @@ Subcommands:
   demos     record scripted demonstrations as MCAP episodes
   inspect   check episode files (and salvage truncated ones with --recover)
   experts   measure scripted-expert success and write the table to docs/
+  train     train a diffusion policy on demonstrations
+  rollout   run a policy autonomously and report success and uncertainty
+  calibrate set the uncertainty threshold from held-out validation episodes
+  plot      write figures to docs/
+  bench     print speed measurements as JSON
 """
 
 from __future__ import annotations
@@ -53,8 +58,10 @@ def _cmd_tasks(args: argparse.Namespace) -> int:
 
 def _cmd_demos(args: argparse.Namespace) -> int:
     from sim.demos import record_demos
+    from sim.rollout import ExecutionNoise
 
-    paths, ok = record_demos(args.task, args.episodes, args.out, seed=args.seed, progress=not args.quiet)
+    noise = ExecutionNoise(args.pos_noise, args.rot_noise) if args.pos_noise or args.rot_noise else None
+    paths, ok = record_demos(args.task, args.episodes, args.out, seed=args.seed, progress=not args.quiet, noise=noise)
     print(f"wrote {len(paths)} episodes ({ok} successful) to {Path(args.out).resolve()}")
     return 0
 
@@ -121,6 +128,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--seed", type=int, default=0, help="first episode seed; episode i uses seed + i")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--pos-noise", type=float, default=0.0, help="DART: std of executed target position noise (m)")
+    p.add_argument("--rot-noise", type=float, default=0.0, help="DART: std of executed target yaw noise (rad)")
     p.set_defaults(func=_cmd_demos)
 
     p = sub.add_parser("inspect", help="check episode files; --recover salvages truncated ones")
@@ -135,6 +144,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, help="write the markdown table here (e.g. docs/experts.md)")
     p.set_defaults(func=_cmd_experts)
+
+    from hitl import policy_commands
+
+    policy_commands.register(sub)
     return parser
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from sim.registry import make_expert, make_task
-from sim.rollout import StepRecord, run_expert_episode
+from sim.rollout import ExecutionNoise, StepRecord, run_expert_episode
 from sim.spaces import ACTION_LABELS
 from storage import keys
 from storage.episodes import EpisodeWriter
@@ -20,10 +20,16 @@ def episode_path(out: Path, task: str, seed: int) -> Path:
 
 
 def record_demos(
-    task_name: str, episodes: int, out: str | Path, seed: int = 0, progress: bool = True
+    task_name: str,
+    episodes: int,
+    out: str | Path,
+    seed: int = 0,
+    progress: bool = True,
+    noise: ExecutionNoise | None = None,
 ) -> tuple[list[Path], int]:
     """Writes ``episodes`` expert episodes (seeds ``seed .. seed + episodes - 1``), one MCAP file each.
 
+    ``noise`` perturbs the executed actions (DART); the files hold the expert's clean actions.
     Returns the files and how many episodes succeeded.
     """
     if episodes < 1:
@@ -42,6 +48,7 @@ def record_demos(
                 "obs_labels": _labels(task),
                 "action_labels": list(ACTION_LABELS),
                 "source": keys.SOURCE_EXPERT,
+                "execution_noise": {"pos": noise.pos, "rot": noise.rot} if noise else None,
             }
             with EpisodeWriter(path, meta, object_names=list(task.object_poses())) as writer:
 
@@ -50,7 +57,7 @@ def record_demos(
                         r.t, r.obs, r.action, r.ee_pos, r.ee_quat, r.gripper, r.success, keys.SOURCE_EXPERT, r.objects
                     )
 
-                result = run_expert_episode(task, expert, s, on_step)
+                result = run_expert_episode(task, expert, s, on_step, noise)
                 writer.finish(result.success, result.steps, "success" if result.success else "horizon")
             successes += result.success
             paths.append(path)

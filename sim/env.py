@@ -169,6 +169,10 @@ class Task(ABC):
     def on_step(self) -> None:  # noqa: B027 - optional hook
         """Called after each control step, before observing."""
 
+    def episode_info(self) -> dict:
+        """Task-specific outcome details of the current episode (JSON-serialisable)."""
+        return {}
+
     # -- environment access -----------------------------------------------
     @property
     def env(self):

@@ -4,7 +4,7 @@ import pytest
 from sim.registry import TASKS, make_expert, make_task
 from sim.rollout import run_expert_episode
 from sim.spaces import TeleopCommand
-from sim.tasks.cup_stack import OCCLUSION_DISTANCE
+from sim.tasks.cup_stack import OCCLUSION_RADIUS
 
 TASK_IDS = list(TASKS)
 
@@ -105,23 +105,41 @@ def test_open_drawer_wrong_drawer_is_failure(task_cache):
     assert task.opened_drawer() == 1
 
 
-def test_cup_stack_red_cup_is_occluded_near_the_gripper(task_cache):
+def test_cup_stack_red_cup_is_hidden_while_the_green_cup_is_over_it(task_cache):
     task = task_cache("cup-stack")
     task.reset(seed=5)
-    sl = task.obs_spec.slices()["red_pos_observed"]
+    sl = task.obs_spec.slices()
     red_true = task.privileged()["red_pos"]
-    np.testing.assert_allclose(task.observe()[sl], red_true, atol=1e-6)
-    # move the (hidden) red cup while the gripper is near it: the observation keeps the last seen value
-    target = red_true + np.array([0, 0, OCCLUSION_DISTANCE * 0.5])
-    for _ in range(60):
-        pos, _ = task.ee_pose()
-        step = np.clip(target - pos, -0.03, 0.03)
-        task.step(task.teleop(TeleopCommand(tuple(step), (0, 0, 0), -1.0)).action)
-    assert not task.privileged()["red_visible"]
-    seen = task.observe()[sl].copy()
-    red_body = task._red_body
-    task.sim.data.set_joint_qpos(task.red.joints[0], np.r_[red_true + [0.03, 0, 0], [1, 0, 0, 0]])
+    obs = task.observe()
+    np.testing.assert_allclose(obs[sl["red_pos_observed"]], red_true, atol=1e-6)
+    assert obs[sl["red_visible"]] == 1.0
+    # carry the green cup (teleported) over the red one: the red cup disappears from the observation
+    above = np.r_[red_true[:2] + [OCCLUSION_RADIUS * 0.5, 0], red_true[2] + 0.15]
+    task.sim.data.set_joint_qpos(task.green.joints[0], np.r_[above, [1, 0, 0, 0]])
     task.sim.forward()
-    task.step(task.hold_action())
-    np.testing.assert_allclose(task.observe()[sl], seen)
-    assert not np.allclose(task.sim.data.body_xpos[red_body], seen, atol=0.01)
+    obs = task.observe()
+    assert not task.privileged()["red_visible"]
+    assert obs[sl["red_visible"]] == 0.0
+    np.testing.assert_array_equal(obs[sl["red_pos_observed"]], 0.0)
+    np.testing.assert_array_equal(obs[sl["red_observed_to_green_pos"]], 0.0)
+    # and reappears once the green cup is moved away again
+    away = np.r_[red_true[:2] + [0, OCCLUSION_RADIUS * 1.5], red_true[2] + 0.15]
+    task.sim.data.set_joint_qpos(task.green.joints[0], np.r_[away, [1, 0, 0, 0]])
+    task.sim.forward()
+    np.testing.assert_allclose(task.observe()[sl["red_pos_observed"]], red_true, atol=1e-6)
+
+
+def test_execution_noise_perturbs_the_run_and_keeps_expert_labels(task_cache):
+    from sim.rollout import ExecutionNoise
+
+    task, expert = task_cache("lift-cube"), make_expert("lift-cube")
+    clean, noisy = [], []
+    run_expert_episode(task, expert, 3, lambda r: clean.append(r))
+    result = run_expert_episode(task, expert, 3, lambda r: noisy.append(r), ExecutionNoise(0.01, 0.15))
+    assert result.success
+    assert not np.allclose(clean[20].ee_pos, noisy[20].ee_pos, atol=1e-4)
+    # labels are the expert's (within the teleop step limit of the observed pose), not the noisy targets
+    steps = np.array([np.linalg.norm(r.action[:3] - r.ee_pos) for r in noisy])
+    assert steps.max() <= 0.03 * np.sqrt(3) + 1e-6
+    with pytest.raises(ValueError, match="pos"):
+        ExecutionNoise(pos=float("nan"))

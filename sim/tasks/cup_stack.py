@@ -1,8 +1,13 @@
 """Cup stacking: pick the green cup and place it inside the red cup.
 
-Partial observability: the red cup's position is observed only while the
-gripper is farther than ``OCCLUSION_DISTANCE`` from it (near insertion the held
-cup "occludes" it); after that the observation holds the last seen value.
+Partial observability: once the green cup is carried to within
+``OCCLUSION_RADIUS`` (horizontal distance) of the red cup, the held cup hides
+the red one, as the held cup hides the bottom cup from the cameras in the
+paper's task. While hidden, the red-cup channels read zero and ``red_visible``
+reads 0: with an observation history of 1 the policy must align the cups
+without seeing the red one, which is where the paper's policy fails. The cups
+start at least ``MIN_CUP_SEPARATION`` apart, so the red cup is always visible
+at the start of an episode.
 """
 
 from __future__ import annotations
@@ -14,10 +19,11 @@ from sim.objects import CupGeometry, make_cup
 from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
 
-OCCLUSION_DISTANCE = 0.12  # metres, gripper to red cup centre
+OCCLUSION_RADIUS = 0.10  # metres, horizontal distance green cup centre to red cup centre
 MIN_CUP_SEPARATION = 0.18
 GREEN = CupGeometry(inner_radius=0.022, outer_radius=0.028, height=0.085)
 RED = CupGeometry(inner_radius=0.040, outer_radius=0.047, height=0.045)
+GRASPED_LIFT = 0.03  # green cup bottom this far above the table counts as picked up
 RELEASED_OPENING = 0.065  # finger gap above which the green cup counts as let go
 
 CUP_OBS = ObsSpec(
@@ -30,6 +36,7 @@ CUP_OBS = ObsSpec(
         ("red_pos_observed", 3),
         ("green_to_eef_pos", 3),
         ("red_observed_to_green_pos", 3),
+        ("red_visible", 1),
     )
 )
 
@@ -42,10 +49,6 @@ class CupStackTask(Task):
     obs_spec = CUP_OBS
     action_space = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
     object_name = "cups"
-
-    def __init__(self) -> None:
-        super().__init__()
-        self._red_seen = np.zeros(3)
 
     def build_objects(self) -> dict:
         self.green = make_cup("green_cup", GREEN, (0.15, 0.7, 0.2, 1.0), density=300)
@@ -70,27 +73,33 @@ class CupStackTask(Task):
     def _red_body(self) -> int:
         return self.body_id(self.red.root_body)
 
-    def _red_visible(self) -> bool:
-        eef = self.ee_pose()[0]
-        return float(np.linalg.norm(eef - self.sim.data.body_xpos[self._red_body])) > OCCLUSION_DISTANCE
-
     def reset(self, seed: int) -> np.ndarray:
-        self._red_seen = np.zeros(3)
+        self._grasped = False
         return super().reset(seed)
 
-    def _settle(self, steps: int = 5) -> None:
-        super()._settle(steps)
-        self._red_seen = self.sim.data.body_xpos[self._red_body].copy()
-
     def on_step(self) -> None:
-        if self._red_visible():
-            self._red_seen = self.sim.data.body_xpos[self._red_body].copy()
+        green = self.sim.data.body_xpos[self._green_body]
+        if green[2] - GREEN.half_height > TABLE_TOP_Z + GRASPED_LIFT:
+            self._grasped = True
+
+    def episode_info(self) -> dict:
+        """``grasped``: the green cup was lifted off the table; ``inserted``: it is inside the red cup."""
+        return {"grasped": bool(getattr(self, "_grasped", False)), "inserted": self._green_inside()}
+
+    def _red_visible(self) -> bool:
+        green = self.sim.data.body_xpos[self._green_body]
+        red = self.sim.data.body_xpos[self._red_body]
+        return float(np.linalg.norm(green[:2] - red[:2])) >= OCCLUSION_RADIUS
 
     def observe(self) -> np.ndarray:
         eef = self.robot_obs()
         green_pos, green_quat = self.body_pose(self._green_body)
-        red = self._red_seen
-        return np.concatenate([eef, green_pos, quat_to_rot6d(green_quat), red, green_pos - eef[0:3], red - green_pos])
+        visible = self._red_visible()
+        red = self.sim.data.body_xpos[self._red_body].copy() if visible else np.zeros(3)
+        to_red = red - green_pos if visible else np.zeros(3)
+        return np.concatenate(
+            [eef, green_pos, quat_to_rot6d(green_quat), red, green_pos - eef[0:3], to_red, [float(visible)]]
+        )
 
     def _green_inside(self) -> bool:
         green = self.sim.data.body_xpos[self._green_body]

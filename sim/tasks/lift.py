@@ -109,6 +109,7 @@ class LiftTask(Task):
         if object_key == "cube":
             self.problem = "training distribution"
         self._rest_z = 0.0
+        self._max_lift = 0.0
 
     def build_objects(self) -> dict:
         self.obj = self.spec.factory(self.object_name)
@@ -129,6 +130,14 @@ class LiftTask(Task):
     def _settle(self, steps: int = 5) -> None:
         super()._settle(steps)
         self._rest_z = float(self.sim.data.body_xpos[self._body][2])
+        self._max_lift = 0.0
+
+    def on_step(self) -> None:
+        self._max_lift = max(self._max_lift, float(self.sim.data.body_xpos[self._body][2]) - self._rest_z)
+
+    def episode_info(self) -> dict:
+        """``max_lift``: the highest the object got above its resting height (m)."""
+        return {"max_lift": round(self._max_lift, 4)}
 
     @property
     def _body(self) -> int:

@@ -86,6 +86,10 @@ class OpenDrawerTask(Task):
         others = np.delete(opening, self.intended)
         return bool(opening[self.intended] >= OPEN_DISTANCE and np.all(others < WRONG_DRAWER_TOLERANCE))
 
+    def episode_info(self) -> dict:
+        """``intended`` and ``opened`` drawer (None when no drawer is open past OPEN_DISTANCE)."""
+        return {"intended": self.intended, "opened": self.opened_drawer()}
+
     def opened_drawer(self) -> int | None:
         """Which drawer is open past OPEN_DISTANCE (the most open one), if any."""
         opening = self.openings()

@@ -1,0 +1,385 @@
+"""``hitl train | rollout | calibrate`` subcommands (the policy side of the CLI)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    import torch
+
+    from policy.checkpoint import save_policy
+    from policy.config import DiffusionPolicyConfig
+    from policy.diffusion_policy import DiffusionPolicy
+    from policy.train import TrainConfig, train_policy
+    from sim.registry import make_task
+    from storage.dataset import DatasetConfig, load_dataset
+
+    task = make_task(args.task)  # validates the name; the simulator is not built
+    ds = load_dataset(
+        args.data, DatasetConfig(obs_horizon=args.obs_horizon, action_horizon=args.action_horizon, split_seed=args.seed)
+    )
+    if ds.obs.shape[1] != task.obs_spec.dim:
+        raise ValueError(
+            f"{args.data} holds {ds.obs.shape[1]}-dim observations, task {args.task} has "
+            f"{task.obs_spec.dim}: was it recorded for another task or an older version?"
+        )
+    train_ep, val_ep = ds.split()
+    cfg = DiffusionPolicyConfig(
+        obs_dim=task.obs_spec.dim,
+        obs_horizon=args.obs_horizon,
+        action_horizon=args.action_horizon,
+        n_action_steps=args.n_action_steps,
+        network=args.network,
+        down_dims=tuple(args.down_dims),
+        num_inference_steps=args.ddim_steps,
+    )
+    tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads)
+    torch.manual_seed(args.seed)
+    policy = DiffusionPolicy(cfg)
+    # normalizer statistics come from the training episodes only
+    train_idx = ds.sample_index(train_ep)
+    policy.fit_normalizers(ds.obs[train_idx[:, 0]], ds.actions[train_idx[:, 0]])
+    ema, history = train_policy(policy, ds.arrays("train"), ds.arrays("val"), tcfg, progress=not args.quiet)
+    info = {
+        "task": args.task,
+        "dataset": {
+            "folder": str(Path(args.data).resolve()),
+            "episodes": ds.num_episodes,
+            "train_episodes": [ds.names[i] for i in train_ep],
+            "val_episodes": [ds.names[i] for i in val_ep],
+            "split_seed": args.seed,
+            "val_fraction": ds.config.val_fraction,
+            "steps": int(len(ds.obs)),
+            "excluded": ds.excluded,
+        },
+        "training": {
+            **tcfg.to_dict(),
+            "seconds": round(history["seconds"], 1),
+            "final_train_loss": history["train_loss"][-1],
+            "final_val_loss": history["val_loss"][-1] if history["val_loss"] else None,
+        },
+        "command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        if args.command_line is None
+        else args.command_line,
+    }
+    out = save_policy(ema, args.out, info)
+    (out / "train_history.json").write_text(json.dumps(history) + "\n")
+    print(
+        json.dumps(
+            {
+                "out": str(out),
+                "seconds": round(history["seconds"], 1),
+                "train_loss": round(history["train_loss"][-1], 5),
+                "val_loss": round(history["val_loss"][-1], 5) if history["val_loss"] else None,
+            }
+        )
+    )
+    return 0
+
+
+def _uncertainty_config(args: argparse.Namespace):
+    from policy.uncertainty import UncertaintyConfig
+
+    return UncertaintyConfig(
+        num_samples=args.samples,
+        radius=args.radius,
+        max_modes=args.max_modes,
+        criterion=args.criterion,
+        alpha=args.alpha,
+        backend=args.backend,
+    )
+
+
+def _add_uncertainty_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--samples", type=int, default=128, help="probe samples S per robot")
+    p.add_argument("--radius", type=float, default=0.05, help="probe radius r (normalized action space)")
+    p.add_argument("--max-modes", type=int, default=4)
+    p.add_argument("--criterion", choices=["bic", "likelihood"], default="bic")
+    p.add_argument("--alpha", type=float, default=0.1)
+    p.add_argument("--backend", choices=["torch", "sklearn"], default="torch")
+
+
+def _cmd_rollout(args: argparse.Namespace) -> int:
+    import torch
+
+    from policy.evaluate import rollout_policy, summarize
+    from policy.uncertainty import UncertaintyEstimator
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    policy, info, calibration = _policy_with(args)
+    estimator = None if args.no_uncertainty else UncertaintyEstimator(_uncertainty_config(args))
+    seeds = list(range(args.seed, args.seed + args.episodes))
+    episodes, timing = rollout_policy(
+        policy, args.task, seeds, n_envs=args.envs, estimator=estimator, progress=not args.quiet
+    )
+    out = {
+        "policy": str(args.policy),
+        "trained_on": info.get("task"),
+        "task": args.task,
+        **summarize(episodes),
+        "seconds": round(timing["seconds"], 1),
+    }
+    if calibration and estimator is not None:
+        thr = calibration["threshold"]
+        above = [sum(u >= thr for u in e.uncertainty) for e in episodes]
+        out["threshold"] = {
+            "value": thr,
+            "steps_above": int(sum(above)),
+            "fraction_above": float(sum(above) / max(1, sum(e.steps for e in episodes))),
+        }
+    out["per_episode"] = [e.summary() for e in episodes]
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print(
+            f"{args.task}: {out['successes']}/{out['episodes']} successful "
+            f"({out['success_rate']:.0%}), mean {out['steps']['mean']:.0f} steps"
+        )
+        if "uncertainty" in out:
+            u = out["uncertainty"]
+            print(f"uncertainty: median {u['median']:.3f}, p95 {u['p95']:.3f}, max {u['max']:.3f}")
+    return 0
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from policy.calibrate import calibrate
+    from policy.checkpoint import load_policy, save_calibration
+
+    policy, info = load_policy(args.policy)
+    record = calibrate(policy, info, args.data, args.quantile, _uncertainty_config(args), progress=not args.quiet)
+    path = save_calibration(args.policy, record)
+    print(
+        json.dumps(
+            {
+                "threshold": record["threshold"],
+                "quantile": record["quantile"],
+                "samples": record["samples"],
+                "episodes": len(record["episodes"]),
+                "saved": str(path),
+            }
+        )
+    )
+    return 0
+
+
+def _policy_with(args: argparse.Namespace):
+    """Loads the policy (optionally with another DDIM step count) and its calibration."""
+    from dataclasses import replace
+
+    from policy.checkpoint import load_calibration, load_policy
+    from policy.diffusion_policy import DiffusionPolicy
+
+    policy, info = load_policy(args.policy)
+    if getattr(args, "ddim_steps", None):
+        state = policy.state_dict()
+        policy = DiffusionPolicy(replace(policy.config, num_inference_steps=args.ddim_steps))
+        policy.load_state_dict(state)
+        policy.eval()
+    return policy, info, load_calibration(args.policy)
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from policy.evaluate import context_for, rollout_policy
+    from policy.plots import plot_field, plot_timeline
+    from policy.uncertainty import UncertaintyEstimator
+
+    policy, info, calibration = _policy_with(args)
+    threshold = calibration["threshold"] if calibration else None
+    seeds = list(range(args.seed, args.seed + args.episodes))
+    episodes, _ = rollout_policy(
+        policy,
+        args.task,
+        seeds,
+        n_envs=min(4, len(seeds)),
+        estimator=UncertaintyEstimator(_uncertainty_config(args)),
+        keep_fields=True,
+        progress=not args.quiet,
+    )
+    out = Path(args.out)
+    first = episodes[0]
+    title = f"policy {info.get('task')} on {args.task}, seed {first.seed}"
+    timeline = plot_timeline(first, threshold, out / f"{args.task}-uncertainty.png", title)
+    peak = int(np.argmax(first.uncertainty))
+    field = plot_field(first.fields[peak], out / f"{args.task}-field.png", f"{title}, step {peak}")
+    label, _ = context_for(args.task)
+    report = {
+        "task": args.task,
+        "policy": str(args.policy),
+        "threshold": threshold,
+        "figures": [str(timeline), str(field)],
+        "context": label,
+        "episodes": [],
+    }
+    for ep in episodes:
+        u = np.asarray(ep.uncertainty)
+        ctx = np.asarray(ep.context)
+        above = u >= threshold if threshold is not None else np.zeros_like(u, dtype=bool)
+        report["episodes"].append(
+            {
+                **ep.summary(),
+                "peak_step": int(u.argmax()),
+                "context_at_peak": float(ctx[u.argmax()]),
+                "first_above_step": int(np.argmax(above)) if above.any() else None,
+                "context_at_first_above": float(ctx[np.argmax(above)]) if above.any() else None,
+                "steps_above": int(above.sum()),
+                "median_context_above": float(np.median(ctx[above])) if above.any() else None,
+                "median_context": float(np.median(ctx)),
+            }
+        )
+    text = json.dumps(report, indent=2)
+    (out / f"{args.task}-uncertainty.json").write_text(text + "\n")
+    print(text if args.json else f"wrote {timeline} and {field}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+
+    from policy.bench import bench_uncertainty
+    from policy.evaluate import rollout_policy
+    from policy.uncertainty import UncertaintyEstimator
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    policy, info, _ = _policy_with(args)
+    task = args.task or info["task"]
+    seeds = list(range(args.seed, args.seed + args.episodes))
+    episodes, _ = rollout_policy(
+        policy,
+        task,
+        seeds,
+        n_envs=min(4, len(seeds)),
+        estimator=UncertaintyEstimator(_uncertainty_config(args)),
+        keep_fields=True,
+        progress=not args.quiet,
+    )
+    inputs = [x for ep in episodes for x in ep.probe_inputs]
+    order = np.random.default_rng(0).permutation(len(inputs))
+    obs = np.stack([inputs[i][0] for i in order])
+    centers = np.stack([inputs[i][1] for i in order])
+    result = bench_uncertainty(
+        policy, obs, centers, tuple(args.fleet_sizes), args.repeats, _uncertainty_config(args), progress=not args.quiet
+    )
+    result = {
+        "benchmark": "uncertainty",
+        "policy": str(args.policy),
+        "states_from": f"{task} rollouts, seeds {seeds[0]}..{seeds[-1]}",
+        **result,
+    }
+    print(json.dumps(result, indent=2 if not args.json else None))
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from policy.report import sanity_report
+
+    episodes = {
+        "lift-cube": args.episodes_lift,
+        "lift-other": args.episodes_other,
+        "cup-stack": args.episodes_cup,
+        "open-drawer": args.episodes_drawer,
+    }
+    command = "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    text, results = sanity_report(args.lift, args.cup, args.drawer, episodes, args.seed, not args.quiet, command)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text)
+        Path(args.out).with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
+    print(text)
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train a diffusion policy on recorded demonstrations")
+    p.add_argument("--task", required=True)
+    p.add_argument("--data", required=True, type=Path, help="folder of MCAP episodes")
+    p.add_argument("--out", required=True, type=Path, help="policy folder to write")
+    p.add_argument("--steps", type=int, default=20_000)
+    p.add_argument("--batch-size", type=int, default=256)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--network", choices=["unet", "mlp"], default="unet")
+    p.add_argument("--down-dims", type=int, nargs="+", default=[64, 128])
+    p.add_argument("--obs-horizon", type=int, default=1)
+    p.add_argument("--action-horizon", type=int, default=1)
+    p.add_argument("--n-action-steps", type=int, default=None)
+    p.add_argument("--ddim-steps", type=int, default=10)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: all)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_train, command_line=None)
+
+    p = sub.add_parser("rollout", help="run a policy autonomously; success, steps and uncertainty")
+    p.add_argument("--policy", required=True, type=Path, help="policy folder written by `hitl train`")
+    p.add_argument("--task", required=True)
+    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--seed", type=int, default=1000, help="first episode seed (demonstrations use 0..)")
+    p.add_argument("--envs", type=int, default=4, help="simulated robots stepping in lockstep")
+    p.add_argument("--ddim-steps", type=int, default=None, help="override the policy's DDIM steps")
+    p.add_argument("--no-uncertainty", action="store_true")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--quiet", action="store_true")
+    _add_uncertainty_args(p)
+    p.set_defaults(func=_cmd_rollout)
+
+    p = sub.add_parser("calibrate", help="uncertainty threshold from the held-out validation episodes")
+    p.add_argument("--policy", required=True, type=Path)
+    p.add_argument("--data", required=True, type=Path, help="the folder the policy was trained from")
+    p.add_argument("--quantile", type=float, default=0.95)
+    p.add_argument("--quiet", action="store_true")
+    _add_uncertainty_args(p)
+    p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser("plot", help="write figures to docs/")
+    what = p.add_subparsers(dest="figure", required=True)
+    q = what.add_parser("uncertainty", help="U timeline against the threshold and the vector field at its peak")
+    q.add_argument("--policy", required=True, type=Path)
+    q.add_argument("--task", required=True)
+    q.add_argument("--seed", type=int, default=1000)
+    q.add_argument("--episodes", type=int, default=1, help="more episodes only add to the JSON report")
+    q.add_argument("--ddim-steps", type=int, default=None)
+    q.add_argument("--out", type=Path, default=Path("docs/figures"))
+    q.add_argument("--json", action="store_true")
+    q.add_argument("--quiet", action="store_true")
+    _add_uncertainty_args(q)
+    q.set_defaults(func=_cmd_plot)
+
+    p = sub.add_parser("report", help="run the paper's sanity checks and write them to docs/")
+    what = p.add_subparsers(dest="report", required=True)
+    q = what.add_parser("sanity", help="lift on seen/unseen objects, cup-stack grasp vs insertion, drawer choice")
+    q.add_argument("--lift", type=Path, help="lift-cube policy folder")
+    q.add_argument("--cup", type=Path, help="cup-stack policy folder")
+    q.add_argument("--drawer", type=Path, help="open-drawer policy folder")
+    q.add_argument("--episodes-lift", type=int, default=50)
+    q.add_argument("--episodes-other", type=int, default=20)
+    q.add_argument("--episodes-cup", type=int, default=20)
+    q.add_argument("--episodes-drawer", type=int, default=30)
+    q.add_argument("--seed", type=int, default=1000)
+    q.add_argument("--out", type=Path, help="markdown file (a .json with the numbers is written beside it)")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("bench", help="speed measurements, printed as JSON")
+    what = p.add_subparsers(dest="target", required=True)
+    q = what.add_parser("uncertainty", help="uncertainty metric vs DDIM sampling; torch vs sklearn GMM")
+    q.add_argument("--policy", required=True, type=Path)
+    q.add_argument("--task", default=None, help="task to collect rollout states on (default: the policy's)")
+    q.add_argument("--episodes", type=int, default=4)
+    q.add_argument("--seed", type=int, default=1000)
+    q.add_argument("--fleet-sizes", type=int, nargs="+", default=[1, 8, 32])
+    q.add_argument("--repeats", type=int, default=5)
+    q.add_argument("--ddim-steps", type=int, default=None)
+    q.add_argument("--threads", type=int, default=None)
+    q.add_argument("--json", action="store_true", help="one line of JSON")
+    q.add_argument("--quiet", action="store_true")
+    _add_uncertainty_args(q)
+    q.set_defaults(func=_cmd_bench)

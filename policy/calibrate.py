@@ -1,0 +1,99 @@
+"""Uncertainty threshold = a quantile of U over the held-out validation episodes.
+
+The validation episodes are the ones ``hitl train`` held out (their names are in
+the policy's config.json), so calibration never sees a training episode. The
+current end-effector pose of each recorded step is the probe's centre; the
+gripper dimension holds the command in force at that step (the previous
+action's gripper, open at the first step), as in live rollouts.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from policy.diffusion_policy import DiffusionPolicy
+from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
+from sim.rotations import quat_to_rot6d
+from storage.dataset import DatasetConfig, DemoDataset, load_dataset
+
+
+class CalibrationError(ValueError):
+    pass
+
+
+def current_actions(ds: DemoDataset, rows: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """(M, 10) raw actions holding the recorded end-effector pose and gripper command at ``rows``."""
+    pose = ds.ee_pose[rows]
+    rot = np.stack([quat_to_rot6d(q) for q in pose[:, 3:7]])
+    prev = np.where(rows > starts, rows - 1, rows)
+    gripper = np.where(rows > starts, ds.actions[prev, 9], -1.0)
+    return np.concatenate([pose[:, 0:3], rot, gripper[:, None]], axis=1).astype(np.float32)
+
+
+def validation_uncertainty(
+    policy: DiffusionPolicy,
+    data: str | Path,
+    val_episodes: list[str],
+    config: UncertaintyConfig,
+    batch: int = 64,
+    progress: bool = True,
+) -> tuple[np.ndarray, list[str]]:
+    """U at every step of the named validation episodes found in ``data`` -> (U (M,), episode names used)."""
+    cfg = policy.config
+    ds = load_dataset(data, DatasetConfig(obs_horizon=cfg.obs_horizon, action_horizon=cfg.action_horizon))
+    wanted = set(val_episodes)
+    episodes = np.array([i for i, name in enumerate(ds.names) if name in wanted], dtype=np.int64)
+    if len(episodes) == 0:
+        raise CalibrationError(
+            f"none of the policy's {len(wanted)} validation episodes is in {data}; calibrate on the folder the "
+            "policy was trained from (validation episodes are never used for training)"
+        )
+    index = ds.sample_index(episodes)
+    obs, _ = ds.windows(index)
+    centers = current_actions(ds, index[:, 0], index[:, 1])
+    estimator = UncertaintyEstimator(config)
+    values = []
+    bar = tqdm(total=len(index), desc="calibrate", disable=not progress, unit="step")
+    try:
+        for i in range(0, len(index), batch):
+            o = torch.as_tensor(obs[i : i + batch])
+            c = policy.normalize_action(torch.as_tensor(centers[i : i + batch]))
+            values.append(estimator(policy.noise_prediction, o, c, chunk=cfg.action_horizon).U.numpy())
+            bar.update(len(o))
+    finally:
+        bar.close()
+    return np.concatenate(values), [ds.names[i] for i in episodes]
+
+
+def calibrate(
+    policy: DiffusionPolicy,
+    info: dict,
+    data: str | Path,
+    quantile: float = 0.95,
+    config: UncertaintyConfig | None = None,
+    progress: bool = True,
+) -> dict:
+    """Threshold record for calibration.json."""
+    if not 0 < quantile < 1:
+        raise ValueError(f"quantile must be in (0, 1), got {quantile!r}")
+    config = config or UncertaintyConfig()
+    val = info.get("dataset", {}).get("val_episodes")
+    train = set(info.get("dataset", {}).get("train_episodes", []))
+    if not val:
+        raise CalibrationError("the policy's config.json lists no validation episodes (train with val_fraction > 0)")
+    if train & set(val):
+        raise CalibrationError(f"episodes listed as both training and validation: {sorted(train & set(val))[:5]}")
+    u, used = validation_uncertainty(policy, data, val, config, progress=progress)
+    return {
+        "threshold": float(np.quantile(u, quantile)),
+        "quantile": quantile,
+        "samples": int(len(u)),
+        "episodes": used,
+        "data": str(Path(data).resolve()),
+        "uncertainty": config.to_dict(),
+        "u_stats": {"mean": float(u.mean()), "median": float(np.median(u)), "max": float(u.max())},
+    }

@@ -1,0 +1,93 @@
+"""Typed, validated configuration of the diffusion policy."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+NETWORKS = ("unet", "mlp")
+ACTIVATIONS = ("silu", "mish")
+
+
+@dataclass(frozen=True)
+class DiffusionPolicyConfig:
+    """Low-dimensional conditional diffusion policy.
+
+    obs_horizon H and action_horizon C default to the paper's simulated tasks
+    (1 and 1). ``n_action_steps`` of each predicted chunk are executed before
+    the next prediction (default: the whole chunk).
+    """
+
+    obs_dim: int
+    action_dim: int = 10
+    obs_horizon: int = 1
+    action_horizon: int = 1
+    n_action_steps: int | None = None
+    network: str = "unet"
+    activation: str = "silu"
+    down_dims: tuple[int, ...] = (64, 128)
+    kernel_size: int = 5
+    n_groups: int = 8
+    step_embed_dim: int = 64
+    mlp_hidden: int = 128
+    mlp_layers: int = 2
+    num_train_steps: int = 100
+    num_inference_steps: int = 10
+    clip_margin: float = 0.25  # x̂_0 is clipped to [-margin, 1 + margin] in normalized space
+
+    def __post_init__(self) -> None:
+        def positive_int(name: str) -> None:
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+
+        for name in (
+            "obs_dim",
+            "action_dim",
+            "obs_horizon",
+            "action_horizon",
+            "kernel_size",
+            "n_groups",
+            "step_embed_dim",
+            "mlp_hidden",
+            "mlp_layers",
+            "num_train_steps",
+            "num_inference_steps",
+        ):
+            positive_int(name)
+        if self.n_action_steps is None:
+            object.__setattr__(self, "n_action_steps", self.action_horizon)
+        positive_int("n_action_steps")
+        if self.n_action_steps > self.action_horizon:
+            raise ValueError(f"n_action_steps ({self.n_action_steps}) exceeds action_horizon ({self.action_horizon})")
+        if self.network not in NETWORKS:
+            raise ValueError(f"network must be one of {NETWORKS}, got {self.network!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {ACTIVATIONS}, got {self.activation!r}")
+        object.__setattr__(self, "down_dims", tuple(self.down_dims))
+        if not self.down_dims or any(not isinstance(d, int) or d < 1 for d in self.down_dims):
+            raise ValueError(f"down_dims must be a non-empty tuple of positive integers, got {self.down_dims!r}")
+        if any(d % self.n_groups for d in self.down_dims):
+            raise ValueError(f"every down_dims entry must be divisible by n_groups={self.n_groups}: {self.down_dims}")
+        if self.kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size must be odd, got {self.kernel_size}")
+        if self.step_embed_dim % 2 or self.step_embed_dim < 4:
+            raise ValueError(f"step_embed_dim must be even and >= 4, got {self.step_embed_dim}")
+        if self.num_inference_steps > self.num_train_steps:
+            raise ValueError(
+                f"num_inference_steps ({self.num_inference_steps}) exceeds num_train_steps ({self.num_train_steps})"
+            )
+        if not 0 <= self.clip_margin <= 10:
+            raise ValueError(f"clip_margin must be in [0, 10], got {self.clip_margin!r}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["down_dims"] = list(self.down_dims)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DiffusionPolicyConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown policy config keys: {unknown}")
+        return cls(**d)

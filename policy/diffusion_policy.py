@@ -1,0 +1,139 @@
+"""The diffusion policy: ``compute_loss``, ``predict_action_chunk``, ``select_action``, ``reset``
+and ``noise_prediction`` (the ε_θ the uncertainty metric and several baselines probe).
+
+Raw observations and actions go in and come out; normalization to [0, 1] per
+dimension happens inside, with the statistics stored as buffers.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+import torch
+from torch import nn
+
+from policy.config import DiffusionPolicyConfig
+from policy.diffusion import NoiseSchedule
+from policy.networks import ConditionalUnet1D, FilmMLP
+from policy.normalizer import MinMaxNormalizer
+from storage import keys
+
+
+def _build_network(cfg: DiffusionPolicyConfig) -> nn.Module:
+    cond = cfg.obs_dim * cfg.obs_horizon
+    if cfg.network == "unet":
+        return ConditionalUnet1D(
+            cfg.action_dim,
+            cfg.action_horizon,
+            cond,
+            cfg.down_dims,
+            cfg.kernel_size,
+            cfg.n_groups,
+            cfg.step_embed_dim,
+            cfg.activation,
+        )
+    return FilmMLP(cfg.action_dim, cfg.action_horizon, cond, cfg.mlp_hidden, cfg.mlp_layers, cfg.step_embed_dim)
+
+
+class DiffusionPolicy(nn.Module):
+    def __init__(self, config: DiffusionPolicyConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.obs_normalizer = MinMaxNormalizer(config.obs_dim)
+        self.action_normalizer = MinMaxNormalizer(config.action_dim)
+        self.net = _build_network(config)
+        m = config.clip_margin
+        self.schedule = NoiseSchedule(config.num_train_steps, clip_range=(-m, 1 + m))
+        self._generator = torch.Generator().manual_seed(0)
+        self._obs_queue: deque[torch.Tensor] = deque(maxlen=config.obs_horizon)
+        self._action_queue: deque[torch.Tensor] = deque()
+
+    # -- statistics --------------------------------------------------------------
+    def fit_normalizers(self, obs: np.ndarray, actions: np.ndarray) -> None:
+        """obs: (..., obs_dim), actions: (..., action_dim) raw training data."""
+        self.obs_normalizer.fit(obs)
+        self.action_normalizer.fit(actions)
+
+    def normalize_action(self, action: torch.Tensor) -> torch.Tensor:
+        return self.action_normalizer.normalize(action)
+
+    def unnormalize_action(self, action: torch.Tensor) -> torch.Tensor:
+        return self.action_normalizer.unnormalize(action)
+
+    def _obs_cond(self, obs: torch.Tensor) -> torch.Tensor:
+        """obs: (B, H, obs_dim) raw -> (B, H * obs_dim) normalized."""
+        cfg = self.config
+        if obs.dim() != 3 or obs.shape[1:] != (cfg.obs_horizon, cfg.obs_dim):
+            raise ValueError(f"obs must have shape (B, {cfg.obs_horizon}, {cfg.obs_dim}), got {tuple(obs.shape)}")
+        return self.obs_normalizer.normalize(obs.float()).flatten(1)
+
+    # -- training ------------------------------------------------------------------
+    def compute_loss(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
+        """batch: {OBS: (B, H, obs_dim), ACTION: (B, C, action_dim)} raw. Returns the ε-prediction MSE."""
+        cond = self._obs_cond(batch[keys.OBS])
+        x0 = self.action_normalizer.normalize(batch[keys.ACTION].float())
+        b = x0.shape[0]
+        noise = torch.randn(x0.shape, generator=generator, device=x0.device)
+        k = torch.randint(0, self.config.num_train_steps, (b,), generator=generator, device=x0.device)
+        x_k = self.schedule.add_noise(x0, noise, k)
+        pred = self.net(x_k[:, None], k, cond)[:, 0]
+        return nn.functional.mse_loss(pred, noise)
+
+    # -- the noise predictor ---------------------------------------------------------
+    def noise_prediction(self, obs: torch.Tensor, actions: torch.Tensor, k: int | torch.Tensor) -> torch.Tensor:
+        """ε_θ(o, a, k).
+
+        obs: (B, H, obs_dim) raw; actions: (B, M, C, action_dim) or (B, C, action_dim) in the
+        normalized action space; k: int or (B,). Returns noise of the same shape as ``actions``.
+        """
+        squeeze = actions.dim() == 3
+        x = actions[:, None] if squeeze else actions
+        cond = self._obs_cond(obs)
+        if isinstance(k, int):
+            k = torch.full((x.shape[0],), k, dtype=torch.long, device=x.device)
+        eps = self.net(x.float(), k, cond)
+        return eps[:, 0] if squeeze else eps
+
+    # -- inference ---------------------------------------------------------------------
+    @torch.no_grad()
+    def predict_action_chunk(self, obs: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """obs: (B, H, obs_dim) raw -> (B, C, action_dim) raw actions, by DDIM from Gaussian noise."""
+        cfg = self.config
+        cond = self._obs_cond(obs)
+        b = cond.shape[0]
+        x = torch.randn((b, 1, cfg.action_horizon, cfg.action_dim), generator=generator or self._generator)
+        steps = self.schedule.ddim_timesteps(cfg.num_inference_steps)
+        for i, k in enumerate(steps):
+            eps = self.net(x, torch.full((b,), k, dtype=torch.long), cond)
+            x = self.schedule.ddim_step(x, eps, k, steps[i + 1] if i + 1 < len(steps) else -1)
+        return self.action_normalizer.unnormalize(x[:, 0])
+
+    @torch.no_grad()
+    def select_action(self, obs: torch.Tensor) -> torch.Tensor:
+        """obs: (B, obs_dim) raw current observation -> (B, action_dim) raw action to execute now.
+
+        Keeps the observation history and the queue of not yet executed actions of the chunk.
+        """
+        obs = torch.as_tensor(obs, dtype=torch.float32)
+        if not self._obs_queue:
+            self._obs_queue.extend([obs] * self.config.obs_horizon)  # pad the history with the first frame
+        else:
+            self._obs_queue.append(obs)
+        if not self._action_queue:
+            chunk = self.predict_action_chunk(self.observation_history())
+            self._action_queue.extend(chunk[:, : self.config.n_action_steps].unbind(1))
+        return self._action_queue.popleft()
+
+    def observation_history(self) -> torch.Tensor:
+        """(B, H, obs_dim) history held by ``select_action``."""
+        if not self._obs_queue:
+            raise RuntimeError("no observation yet: call select_action first")
+        return torch.stack(list(self._obs_queue), dim=1)
+
+    def reset(self, seed: int | None = None) -> None:
+        """Clears the queues (call at every episode start); ``seed`` reseeds the sampling noise."""
+        self._obs_queue.clear()
+        self._action_queue.clear()
+        if seed is not None:
+            self._generator.manual_seed(seed)

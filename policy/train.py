@@ -1,0 +1,126 @@
+"""Training loop: AdamW, warm-up + cosine learning rate, EMA weights, seeded.
+
+A plain function with ``try/finally`` cleanup; the EMA copy of the weights is
+what gets returned and saved, as in Chi et al.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from policy.diffusion_policy import DiffusionPolicy
+from storage import keys
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    steps: int = 20_000
+    batch_size: int = 256
+    lr: float = 1e-3
+    weight_decay: float = 1e-6
+    warmup_steps: int = 500
+    ema_decay: float = 0.999
+    seed: int = 0
+    val_every: int = 1000
+    threads: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "batch_size", "val_every"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ValueError(f"lr must be a positive number, got {self.lr!r}")
+        if not 0 <= self.ema_decay < 1:
+            raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay!r}")
+        if not (isinstance(self.warmup_steps, int) and self.warmup_steps >= 0):
+            raise ValueError(f"warmup_steps must be an integer >= 0, got {self.warmup_steps!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _lr_factor(step: int, cfg: TrainConfig) -> float:
+    if step < cfg.warmup_steps:
+        return (step + 1) / cfg.warmup_steps
+    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+
+
+@torch.no_grad()
+def _val_loss(policy: DiffusionPolicy, val: dict[str, torch.Tensor], seed: int, batch: int = 1024) -> float:
+    g = torch.Generator().manual_seed(seed)
+    n = val[keys.OBS].shape[0]
+    losses = []
+    for i in range(0, n, batch):
+        part = {k: v[i : i + batch] for k, v in val.items()}
+        losses.append(float(policy.compute_loss(part, generator=g)) * part[keys.OBS].shape[0])
+    return sum(losses) / max(n, 1)
+
+
+def train_policy(
+    policy: DiffusionPolicy,
+    train: dict[str, np.ndarray],
+    val: dict[str, np.ndarray] | None,
+    cfg: TrainConfig,
+    progress: bool = True,
+) -> tuple[DiffusionPolicy, dict]:
+    """Trains ``policy`` (normalizers must already be fitted) on {OBS, ACTION} arrays.
+
+    Returns (EMA policy, history with loss curves and timing).
+    """
+    threads = torch.get_num_threads()
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    data = {k: torch.as_tensor(v) for k, v in train.items()}
+    val_t = {k: torch.as_tensor(v) for k, v in val.items()} if val and len(val[keys.OBS]) else None
+    n = data[keys.OBS].shape[0]
+    g = torch.Generator().manual_seed(cfg.seed)
+    ema = copy.deepcopy(policy).eval()
+    opt = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    history: dict = {"step": [], "train_loss": [], "val_step": [], "val_loss": []}
+    bar = tqdm(total=cfg.steps, desc="train", disable=not progress, unit="step", smoothing=0.05)
+    start = time.perf_counter()
+    running = 0.0
+    try:
+        policy.train()
+        for step in range(cfg.steps):
+            for group in opt.param_groups:
+                group["lr"] = cfg.lr * _lr_factor(step, cfg)
+            idx = torch.randint(0, n, (cfg.batch_size,), generator=g)
+            loss = policy.compute_loss({k: v[idx] for k, v in data.items()}, generator=g)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"training loss became {float(loss)} at step {step}")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            with torch.no_grad():
+                decay = min(cfg.ema_decay, (1 + step) / (10 + step))
+                for pe, p in zip(ema.net.parameters(), policy.net.parameters(), strict=True):
+                    pe.lerp_(p, 1 - decay)
+            value = float(loss.detach())
+            running = 0.98 * running + 0.02 * value if step else value
+            if step % 50 == 0 or step == cfg.steps - 1:
+                history["step"].append(step)
+                history["train_loss"].append(running)
+                bar.set_postfix(loss=f"{running:.4f}")
+            if val_t is not None and ((step + 1) % cfg.val_every == 0 or step == cfg.steps - 1):
+                history["val_step"].append(step + 1)
+                history["val_loss"].append(_val_loss(ema, val_t, cfg.seed))
+                bar.set_postfix(loss=f"{running:.4f}", val=f"{history['val_loss'][-1]:.4f}")
+            bar.update(1)
+    finally:
+        bar.close()
+        policy.eval()
+        torch.set_num_threads(threads)
+    history["seconds"] = time.perf_counter() - start
+    history["samples"] = n
+    return ema, history

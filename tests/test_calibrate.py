@@ -1,0 +1,64 @@
+import numpy as np
+import pytest
+import torch
+
+from policy.calibrate import CalibrationError, calibrate, validation_uncertainty
+from policy.config import DiffusionPolicyConfig
+from policy.diffusion_policy import DiffusionPolicy
+from policy.uncertainty import UncertaintyConfig
+from storage import keys
+from storage.dataset import DatasetConfig, load_dataset
+from storage.episodes import EpisodeWriter
+
+OBS_DIM = 5
+
+
+def _episodes(folder, lengths):
+    rng = np.random.default_rng(0)
+    for i, n in enumerate(lengths):
+        w = EpisodeWriter(folder / f"ep{i:02d}.mcap", {"task": "unit", "seed": i}, object_names=[])
+        for t in range(n):
+            quat = np.array([1.0, 0, 0, 0])
+            act = np.r_[rng.uniform(-0.1, 0.1, 3), [0, 1, 0, -1, 0, 0], [1.0 if t > 2 else -1.0]]
+            w.write_step(t, rng.normal(size=OBS_DIM), act, act[:3], quat, 0.04, t == n - 1, keys.SOURCE_EXPERT, {})
+        w.finish(True, n, "success")
+    return folder
+
+
+def _policy(folder):
+    ds = load_dataset(folder, DatasetConfig())
+    torch.manual_seed(0)
+    p = DiffusionPolicy(DiffusionPolicyConfig(obs_dim=OBS_DIM, network="mlp", mlp_hidden=32, step_embed_dim=8))
+    p.fit_normalizers(ds.obs, ds.actions)
+    p.eval()
+    train, val = ds.split()
+    info = {"dataset": {"train_episodes": [ds.names[i] for i in train], "val_episodes": [ds.names[i] for i in val]}}
+    return p, info, ds
+
+
+def test_calibration_uses_only_the_validation_episodes(tmp_path):
+    folder = _episodes(tmp_path / "demos", [7, 9, 11, 13, 15, 17, 19, 21, 23, 25])
+    policy, info, ds = _policy(folder)
+    cfg = UncertaintyConfig(num_samples=32)
+    rec = calibrate(policy, info, folder, 0.95, cfg, progress=False)
+    val = info["dataset"]["val_episodes"]
+    assert rec["episodes"] == val and not set(val) & set(info["dataset"]["train_episodes"])
+    lengths = {name: int(e - s) for name, s, e in zip(ds.names, ds.episode_starts, ds.episode_ends, strict=True)}
+    assert rec["samples"] == sum(lengths[n] for n in val)
+    u, _ = validation_uncertainty(policy, folder, val, cfg, progress=False)
+    assert rec["threshold"] == pytest.approx(float(np.quantile(u, 0.95)))
+    # scoring the training episodes instead gives a different sample count: they are not mixed in
+    u_train, _ = validation_uncertainty(policy, folder, info["dataset"]["train_episodes"], cfg, progress=False)
+    assert len(u_train) + rec["samples"] == len(ds.obs)
+
+
+def test_calibration_refuses_unsafe_inputs(tmp_path):
+    folder = _episodes(tmp_path / "demos", [5, 6, 7])
+    policy, info, _ = _policy(folder)
+    leaked = {"dataset": {"train_episodes": ["ep00.mcap", "ep01.mcap"], "val_episodes": ["ep01.mcap"]}}
+    with pytest.raises(CalibrationError, match="both training and validation"):
+        calibrate(policy, leaked, folder, progress=False)
+    with pytest.raises(CalibrationError, match="none of the policy"):
+        calibrate(policy, {"dataset": {"val_episodes": ["other.mcap"]}}, folder, progress=False)
+    with pytest.raises(ValueError, match="quantile"):
+        calibrate(policy, info, folder, quantile=1.5, progress=False)

@@ -1,0 +1,163 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from policy.checkpoint import CheckpointError, load_policy, save_policy, state_equal
+from policy.config import DiffusionPolicyConfig
+from policy.diffusion import NoiseSchedule
+from policy.diffusion_policy import DiffusionPolicy
+from policy.train import TrainConfig, train_policy
+from storage import keys
+
+OBS_DIM = 7
+
+
+def _toy_data(n=256, horizon=1, chunk=1, seed=0):
+    """Actions are a deterministic function of the observation, so the loss can fall."""
+    rng = np.random.default_rng(seed)
+    obs = rng.uniform(-1, 1, size=(n, horizon, OBS_DIM)).astype(np.float32)
+    base = np.concatenate([obs[:, -1, :3], np.tanh(obs[:, -1, 3:7]), obs[:, -1, :3]], axis=1)  # (n, 10)
+    act = np.stack([base + 0.01 * c for c in range(chunk)], axis=1).astype(np.float32)
+    return {keys.OBS: obs, keys.ACTION: act}
+
+
+def _policy(network="mlp", horizon=1, chunk=1, n_action_steps=None, **kw):
+    torch.manual_seed(0)
+    cfg = DiffusionPolicyConfig(
+        obs_dim=OBS_DIM,
+        obs_horizon=horizon,
+        action_horizon=chunk,
+        n_action_steps=n_action_steps,
+        network=network,
+        down_dims=(16, 32),
+        n_groups=4,
+        step_embed_dim=16,
+        mlp_hidden=64,
+        num_inference_steps=5,
+        **kw,
+    )
+    return DiffusionPolicy(cfg)
+
+
+@pytest.mark.parametrize(
+    ("network", "horizon", "chunk"), [("mlp", 1, 1), ("unet", 1, 1), ("unet", 2, 8), ("mlp", 2, 8)]
+)
+def test_training_reduces_loss_and_shapes_are_right(network, horizon, chunk):
+    data = _toy_data(horizon=horizon, chunk=chunk)
+    policy = _policy(network, horizon, chunk)
+    policy.fit_normalizers(data[keys.OBS], data[keys.ACTION])
+    with torch.no_grad():
+        before = float(
+            policy.compute_loss(
+                {k: torch.as_tensor(v) for k, v in data.items()}, generator=torch.Generator().manual_seed(1)
+            )
+        )
+    ema, history = train_policy(
+        policy,
+        data,
+        None,
+        TrainConfig(steps=300, batch_size=64, warmup_steps=10, lr=3e-3, ema_decay=0.9),
+        progress=False,
+    )
+    with torch.no_grad():
+        after = float(
+            ema.compute_loss(
+                {k: torch.as_tensor(v) for k, v in data.items()}, generator=torch.Generator().manual_seed(1)
+            )
+        )
+    assert np.isfinite(after) and after < 0.7 * before
+    obs = torch.as_tensor(data[keys.OBS][:5])
+    chunk_out = ema.predict_action_chunk(obs)
+    assert chunk_out.shape == (5, chunk, 10) and torch.isfinite(chunk_out).all()
+    probe = torch.rand(5, 3, chunk, 10)
+    eps = ema.noise_prediction(obs, probe, 0)
+    assert eps.shape == probe.shape and torch.isfinite(eps).all()
+    assert ema.noise_prediction(obs, probe[:, 0], torch.zeros(5, dtype=torch.long)).shape == (5, chunk, 10)
+
+
+def test_noise_prediction_broadcasts_the_observation_over_samples():
+    policy = _policy("unet")
+    obs = torch.randn(3, 1, OBS_DIM)
+    probe = torch.rand(3, 4, 1, 10)
+    together = policy.noise_prediction(obs, probe, 0)
+    one_by_one = torch.stack([policy.noise_prediction(obs, probe[:, m], 0) for m in range(4)], dim=1)
+    torch.testing.assert_close(together, one_by_one, rtol=1e-5, atol=1e-5)
+
+
+def test_select_action_owns_the_queues():
+    policy = _policy("mlp", horizon=2, chunk=8, n_action_steps=4)
+    policy.fit_normalizers(np.random.default_rng(0).normal(size=(50, OBS_DIM)), np.random.rand(50, 10))
+    calls = []
+    original = policy.predict_action_chunk
+    policy.predict_action_chunk = lambda obs: calls.append(obs.clone()) or original(obs)
+    obs = torch.randn(2, OBS_DIM)
+    for t in range(9):
+        assert policy.select_action(obs + t).shape == (2, 10)
+    assert len(calls) == 3  # steps 0, 4 and 8
+    # the history is padded with the first frame, then slides
+    torch.testing.assert_close(calls[0][:, 0], obs)
+    torch.testing.assert_close(calls[1][:, 0], obs + 3)
+    torch.testing.assert_close(calls[1][:, 1], obs + 4)
+    policy.reset()
+    policy.select_action(obs)
+    assert len(calls) == 4
+
+
+def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
+    data = _toy_data(chunk=8, horizon=2)
+    policy = _policy("unet", horizon=2, chunk=8)
+    policy.fit_normalizers(data[keys.OBS], data[keys.ACTION])
+    policy, _ = train_policy(policy, data, None, TrainConfig(steps=20, batch_size=32, warmup_steps=2), progress=False)
+    save_policy(policy, tmp_path / "p", {"task": "unit", "command": "hitl train ..."})
+    assert sorted(p.name for p in (tmp_path / "p").iterdir()) == ["config.json", "model.safetensors"]
+    doc = json.loads((tmp_path / "p" / "config.json").read_text())
+    assert doc["normalization"]["action"]["min"] == pytest.approx(data[keys.ACTION].reshape(-1, 10).min(0).tolist())
+    loaded, info = load_policy(tmp_path / "p")
+    assert info["task"] == "unit" and state_equal(policy, loaded)
+    obs = torch.as_tensor(data[keys.OBS][:6])
+    a = policy.predict_action_chunk(obs, generator=torch.Generator().manual_seed(3))
+    b = loaded.predict_action_chunk(obs, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(a, b)
+
+
+def test_bad_checkpoints_get_clear_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="config.json not found"):
+        load_policy(tmp_path)
+    save_policy(_policy(), tmp_path)
+    (tmp_path / "model.safetensors").write_bytes(b"not a safetensors file")
+    with pytest.raises(CheckpointError, match="cannot load weights"):
+        load_policy(tmp_path)
+    (tmp_path / "config.json").write_text("{broken")
+    with pytest.raises(CheckpointError, match="not valid JSON"):
+        load_policy(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"action_horizon": 0}, "action_horizon"),
+        ({"network": "transformer"}, "network"),
+        ({"n_action_steps": 9, "action_horizon": 8}, "n_action_steps"),
+        ({"down_dims": (30,)}, "n_groups"),
+        ({"num_inference_steps": 200}, "num_inference_steps"),
+    ],
+)
+def test_config_errors_name_the_bad_value(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        DiffusionPolicyConfig(obs_dim=OBS_DIM, **kwargs)
+
+
+def test_schedule_golden_values():
+    s = NoiseSchedule(100)
+    # squared-cosine schedule: alpha_bar starts near 1 and ends near 0
+    assert float(s.alphas_cumprod[0]) == pytest.approx(0.999369, abs=1e-6)  # cos² ratio at t = 0.01
+    assert float(s.alphas_cumprod[-1]) < 1e-3
+    assert s.ddim_timesteps(10) == [90, 80, 70, 60, 50, 40, 30, 20, 10, 0]
+    # DDIM with the true noise recovers x0 exactly (no clipping)
+    x0 = torch.rand(4, 1, 10)
+    eps = torch.randn(4, 1, 10)
+    k = 60
+    xk = s.add_noise(x0, eps, torch.full((4,), k))
+    torch.testing.assert_close(s.ddim_step(xk, eps, k, -1), x0, rtol=1e-4, atol=1e-5)
