@@ -37,6 +37,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         network=args.network,
         down_dims=tuple(args.down_dims),
         num_inference_steps=args.ddim_steps,
+        obs_encoder_dims=tuple(args.obs_encoder_dims),
     )
     tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads)
     torch.manual_seed(args.seed)
@@ -52,6 +53,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             "episodes": ds.num_episodes,
             "train_episodes": [ds.names[i] for i in train_ep],
             "val_episodes": [ds.names[i] for i in val_ep],
+            "val_episode_bytes": {ds.names[i]: (Path(args.data) / ds.names[i]).stat().st_size for i in val_ep},
             "split_seed": args.seed,
             "val_fraction": ds.config.val_fraction,
             "steps": int(len(ds.obs)),
@@ -308,6 +310,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--network", choices=["unet", "mlp"], default="unet")
     p.add_argument("--down-dims", type=int, nargs="+", default=[64, 128])
+    p.add_argument("--obs-encoder-dims", type=int, nargs="*", default=[256, 256])
     p.add_argument("--obs-horizon", type=int, default=1)
     p.add_argument("--action-horizon", type=int, default=1)
     p.add_argument("--n-action-steps", type=int, default=None)

@@ -87,6 +87,13 @@ def calibrate(
         raise CalibrationError("the policy's config.json lists no validation episodes (train with val_fraction > 0)")
     if train & set(val):
         raise CalibrationError(f"episodes listed as both training and validation: {sorted(train & set(val))[:5]}")
+    sizes = info.get("dataset", {}).get("val_episode_bytes") or {}
+    changed = [n for n, size in sizes.items() if (Path(data) / n).is_file() and (Path(data) / n).stat().st_size != size]
+    if changed:
+        raise CalibrationError(
+            f"{len(changed)} validation episode(s) in {data} differ from the ones the policy held out "
+            f"(e.g. {changed[0]}): is this the folder the policy was trained from?"
+        )
     u, used = validation_uncertainty(policy, data, val, config, progress=progress)
     return {
         "threshold": float(np.quantile(u, quantile)),

@@ -28,6 +28,7 @@ class DiffusionPolicyConfig:
     kernel_size: int = 5
     n_groups: int = 8
     step_embed_dim: int = 64
+    obs_encoder_dims: tuple[int, ...] = (256, 256)
     mlp_hidden: int = 128
     mlp_layers: int = 2
     num_train_steps: int = 100
@@ -66,6 +67,9 @@ class DiffusionPolicyConfig:
         object.__setattr__(self, "down_dims", tuple(self.down_dims))
         if not self.down_dims or any(not isinstance(d, int) or d < 1 for d in self.down_dims):
             raise ValueError(f"down_dims must be a non-empty tuple of positive integers, got {self.down_dims!r}")
+        object.__setattr__(self, "obs_encoder_dims", tuple(self.obs_encoder_dims))
+        if any(not isinstance(d, int) or d < 1 for d in self.obs_encoder_dims):
+            raise ValueError(f"obs_encoder_dims must be positive integers, got {self.obs_encoder_dims!r}")
         if any(d % self.n_groups for d in self.down_dims):
             raise ValueError(f"every down_dims entry must be divisible by n_groups={self.n_groups}: {self.down_dims}")
         if self.kernel_size % 2 == 0:
@@ -82,6 +86,7 @@ class DiffusionPolicyConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["down_dims"] = list(self.down_dims)
+        d["obs_encoder_dims"] = list(self.obs_encoder_dims)
         return d
 
     @classmethod

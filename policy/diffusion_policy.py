@@ -20,8 +20,26 @@ from policy.normalizer import MinMaxNormalizer
 from storage import keys
 
 
-def _build_network(cfg: DiffusionPolicyConfig) -> nn.Module:
-    cond = cfg.obs_dim * cfg.obs_horizon
+class ObsEncoder(nn.Module):
+    """Per-robot MLP on the flattened normalized observation history, concatenated with its input.
+
+    It gives the FiLM conditioning nonlinear observation features (the FiLM layers themselves are
+    linear in the conditioning); it runs once per robot, not once per probe sample.
+    """
+
+    def __init__(self, in_dim: int, dims: tuple[int, ...]) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        for d in dims:
+            layers += [nn.Linear(in_dim if not layers else layers[-2].out_features, d), nn.Mish()]
+        self.mlp = nn.Sequential(*layers)
+        self.out_dim = in_dim + (dims[-1] if dims else 0)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([x, self.mlp(x)], dim=-1) if len(self.mlp) else x
+
+
+def _build_network(cfg: DiffusionPolicyConfig, cond: int) -> nn.Module:
     if cfg.network == "unet":
         return ConditionalUnet1D(
             cfg.action_dim,
@@ -42,7 +60,8 @@ class DiffusionPolicy(nn.Module):
         self.config = config
         self.obs_normalizer = MinMaxNormalizer(config.obs_dim)
         self.action_normalizer = MinMaxNormalizer(config.action_dim)
-        self.net = _build_network(config)
+        self.obs_encoder = ObsEncoder(config.obs_dim * config.obs_horizon, config.obs_encoder_dims)
+        self.net = _build_network(config, self.obs_encoder.out_dim)
         m = config.clip_margin
         self.schedule = NoiseSchedule(config.num_train_steps, clip_range=(-m, 1 + m))
         self._generator = torch.Generator().manual_seed(0)
@@ -62,11 +81,11 @@ class DiffusionPolicy(nn.Module):
         return self.action_normalizer.unnormalize(action)
 
     def _obs_cond(self, obs: torch.Tensor) -> torch.Tensor:
-        """obs: (B, H, obs_dim) raw -> (B, H * obs_dim) normalized."""
+        """obs: (B, H, obs_dim) raw -> (B, cond_dim) encoded normalized history."""
         cfg = self.config
         if obs.dim() != 3 or obs.shape[1:] != (cfg.obs_horizon, cfg.obs_dim):
             raise ValueError(f"obs must have shape (B, {cfg.obs_horizon}, {cfg.obs_dim}), got {tuple(obs.shape)}")
-        return self.obs_normalizer.normalize(obs.float()).flatten(1)
+        return self.obs_encoder(self.obs_normalizer.normalize(obs.float()).flatten(1))
 
     # -- training ------------------------------------------------------------------
     def compute_loss(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:

@@ -85,7 +85,7 @@ def train_policy(
     n = data[keys.OBS].shape[0]
     g = torch.Generator().manual_seed(cfg.seed)
     ema = copy.deepcopy(policy).eval()
-    opt = torch.optim.AdamW(policy.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     history: dict = {"step": [], "train_loss": [], "val_step": [], "val_loss": []}
     bar = tqdm(total=cfg.steps, desc="train", disable=not progress, unit="step", smoothing=0.05)
     start = time.perf_counter()
@@ -104,7 +104,7 @@ def train_policy(
             opt.step()
             with torch.no_grad():
                 decay = min(cfg.ema_decay, (1 + step) / (10 + step))
-                for pe, p in zip(ema.net.parameters(), policy.net.parameters(), strict=True):
+                for pe, p in zip(ema.parameters(), policy.parameters(), strict=True):
                     pe.lerp_(p, 1 - decay)
             value = float(loss.detach())
             running = 0.98 * running + 0.02 * value if step else value

@@ -28,7 +28,9 @@ def _episodes(folder, lengths):
 def _policy(folder):
     ds = load_dataset(folder, DatasetConfig())
     torch.manual_seed(0)
-    p = DiffusionPolicy(DiffusionPolicyConfig(obs_dim=OBS_DIM, network="mlp", mlp_hidden=32, step_embed_dim=8))
+    p = DiffusionPolicy(
+        DiffusionPolicyConfig(obs_dim=OBS_DIM, network="mlp", mlp_hidden=32, step_embed_dim=8, obs_encoder_dims=(16,))
+    )
     p.fit_normalizers(ds.obs, ds.actions)
     p.eval()
     train, val = ds.split()
@@ -60,5 +62,8 @@ def test_calibration_refuses_unsafe_inputs(tmp_path):
         calibrate(policy, leaked, folder, progress=False)
     with pytest.raises(CalibrationError, match="none of the policy"):
         calibrate(policy, {"dataset": {"val_episodes": ["other.mcap"]}}, folder, progress=False)
+    sizes = {"dataset": {**info["dataset"], "val_episode_bytes": {n: 1 for n in info["dataset"]["val_episodes"]}}}
+    with pytest.raises(CalibrationError, match="differ from the ones the policy held out"):
+        calibrate(policy, sizes, folder, progress=False)
     with pytest.raises(ValueError, match="quantile"):
         calibrate(policy, info, folder, quantile=1.5, progress=False)

@@ -35,6 +35,7 @@ def _policy(network="mlp", horizon=1, chunk=1, n_action_steps=None, **kw):
         n_groups=4,
         step_embed_dim=16,
         mlp_hidden=64,
+        obs_encoder_dims=(32,),
         num_inference_steps=5,
         **kw,
     )
@@ -161,3 +162,26 @@ def test_schedule_golden_values():
     k = 60
     xk = s.add_noise(x0, eps, torch.full((4,), k))
     torch.testing.assert_close(s.ddim_step(xk, eps, k, -1), x0, rtol=1e-4, atol=1e-5)
+
+
+def test_rollout_scores_every_step_of_every_robot():
+    from policy.evaluate import rollout_policy, summarize
+    from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
+
+    torch.manual_seed(0)
+    cfg = DiffusionPolicyConfig(
+        obs_dim=23, network="mlp", mlp_hidden=32, obs_encoder_dims=(16,), step_embed_dim=8, num_inference_steps=3
+    )
+    policy = DiffusionPolicy(cfg).eval()
+    rng = np.random.default_rng(0)
+    low = np.r_[[-0.1, -0.1, 0.9], [-1] * 6, [-1]]
+    high = np.r_[[0.1, 0.1, 1.0], [1] * 6, [1]]
+    policy.fit_normalizers(rng.normal(size=(64, 23)), rng.uniform(low, high, size=(64, 10)))
+    est = UncertaintyEstimator(UncertaintyConfig(num_samples=16))
+    episodes, _ = rollout_policy(policy, "lift-cube", [5, 6], n_envs=2, estimator=est, keep_fields=True, progress=False)
+    assert [e.seed for e in episodes] == [5, 6]
+    for e in episodes:
+        assert len(e.uncertainty) == e.steps == len(e.fields) == len(e.context) > 0
+        assert np.isfinite(e.uncertainty).all() and "max_lift" in e.info
+    s = summarize(episodes)
+    assert s["episodes"] == 2 and np.isfinite(s["uncertainty"]["p95"])
