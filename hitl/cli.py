@@ -152,10 +152,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from storage.dataset import DatasetError
+
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (KeyError, ValueError, FileNotFoundError) as exc:
+    except (KeyError, ValueError, FileNotFoundError, DatasetError) as exc:
         print(f"hitl {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

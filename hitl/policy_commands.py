@@ -1,4 +1,4 @@
-"""``hitl train | rollout | calibrate`` subcommands (the policy side of the CLI)."""
+"""``hitl train | rollout | calibrate | plot | report | bench``: the policy side of the CLI."""
 
 from __future__ import annotations
 
