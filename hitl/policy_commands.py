@@ -228,6 +228,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
             {
                 **ep.summary(),
                 "peak_step": int(u.argmax()),
+                "modes_at_peak": ep.fields[int(u.argmax())].n,
                 "context_at_peak": float(ctx[u.argmax()]),
                 "first_above_step": int(np.argmax(above)) if above.any() else None,
                 "context_at_first_above": float(ctx[np.argmax(above)]) if above.any() else None,

@@ -30,7 +30,6 @@ class PolicyEpisode:
     uncertainty: list[float] = field(default_factory=list)
     modes: list[int] = field(default_factory=list)
     fields: list[UncertaintyResult] = field(default_factory=list)  # kept only when asked
-    ee_pos: list[list[float]] = field(default_factory=list)
     context: list[float] = field(default_factory=list)  # task-specific signal per step (see CONTEXT)
     probe_inputs: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # (obs history, centre)
 
@@ -72,11 +71,6 @@ def context_for(task_name: str):
     return CONTEXT["lift" if task_name.startswith("lift") else task_name]
 
 
-def current_action(task: Task) -> np.ndarray:
-    """The action that holds the current end-effector pose and gripper command (raw)."""
-    return task.hold_action()
-
-
 def _run_wave(
     policy: DiffusionPolicy,
     tasks: list[Task],
@@ -94,11 +88,10 @@ def _run_wave(
         action = policy.select_action(torch.as_tensor(obs, dtype=torch.float32)).numpy().astype(np.float64)
         if estimator is not None:
             center = policy.normalize_action(
-                torch.as_tensor(np.stack([current_action(t) for t in tasks[:n]]), dtype=torch.float32)
+                torch.as_tensor(np.stack([t.hold_action() for t in tasks[:n]]), dtype=torch.float32)
             )
-            batch = estimator(
-                policy.noise_prediction, policy.observation_history(), center, chunk=policy.config.action_horizon
-            )
+            history = policy.observation_history()
+            batch = estimator(policy.noise_prediction, history, center, chunk=policy.config.action_horizon)
         for i in np.flatnonzero(active):
             ep = episodes[i]
             if estimator is not None:
@@ -106,8 +99,7 @@ def _run_wave(
                 ep.modes.append(int(batch.fit.n[i]))
                 if keep_fields:
                     ep.fields.append(batch.robot(i))
-                    ep.probe_inputs.append((policy.observation_history()[i].numpy(), center[i].numpy()))
-            ep.ee_pos.append(tasks[i].ee_pose()[0].tolist())
+                    ep.probe_inputs.append((history[i].numpy(), center[i].numpy()))
             if keep_fields:
                 ep.context.append(context_for(tasks[i].name)[1](tasks[i]))
             result = tasks[i].step(action[i])

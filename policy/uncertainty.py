@@ -185,8 +185,3 @@ class UncertaintyEstimator:
         d = mode_divergence(fit.means, fit.n)
         var_g = mixture_variance(vectors, fit.labels, fit.weights)
         return UncertaintyBatch(samples.double(), vectors, fit, d, var_g, d + cfg.alpha * var_g)
-
-
-def policy_eps_fn(policy) -> EpsFn:
-    """ε_θ of a ``DiffusionPolicy`` as the estimator's callable (obs: (B, H, obs_dim) raw)."""
-    return policy.noise_prediction
