@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test lint docs policy-docs clean
+.PHONY: install demo test lint docs policy-docs signals-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -49,6 +49,18 @@ policy-docs: install
 	$(BIN)/hitl plot uncertainty --policy runs/cup-stack --task cup-stack --episodes 4 --out docs/figures
 	$(BIN)/hitl plot uncertainty --policy runs/open-drawer --task open-drawer --episodes 8 --out docs/figures
 	$(BIN)/hitl bench uncertainty --policy runs/lift-cube --task lift-hammer > docs/bench-uncertainty.json
+
+# Regenerates docs/signals.md's inputs: every assistance signal trained and calibrated next to the
+# lift policy (and a chunked lift policy for stac), their cost, and an assisted comparison run.
+# Needs runs/lift-cube and data/demos/lift-cube-dart from `make policy-docs` (about 1 h on 2 cores).
+SIGNALS_C1 := denoising output-variance diff-dagger thrifty hula-offline
+signals-docs: install
+	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart --out runs/lift-cube-c8 --action-horizon 8 --n-action-steps 4 --steps 8000 --threads 2
+	for s in $(SIGNALS_C1); do $(BIN)/hitl train-signal --policy runs/lift-cube --signal $$s --data data/demos/lift-cube-dart --quiet || exit 1; done
+	for s in stac denoising; do $(BIN)/hitl train-signal --policy runs/lift-cube-c8 --signal $$s --data data/demos/lift-cube-dart --quiet || exit 1; done
+	$(BIN)/hitl bench signals --policy runs/lift-cube --stac-policy runs/lift-cube-c8 --task lift-hammer --quiet > docs/bench-signals.json
+	$(BIN)/hitl assist --policy runs/lift-cube --task lift-hammer --driver denoising --shadow all --episodes 8 --plot docs/figures --quiet > docs/assist-lift-hammer.json
+	$(BIN)/hitl assist --policy runs/lift-cube-c8 --task lift-hammer --driver stac --shadow denoising --episodes 8 --quiet > docs/assist-lift-hammer-stac.json
 
 clean:
 	rm -rf $(VENV) .pytest_cache

@@ -301,7 +301,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
+    """Adds the policy commands; returns the ``bench`` targets for other command groups."""
     p = sub.add_parser("train", help="train a diffusion policy on recorded demonstrations")
     p.add_argument("--task", required=True)
     p.add_argument("--data", required=True, type=Path, help="folder of MCAP episodes")
@@ -387,3 +388,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--quiet", action="store_true")
     _add_uncertainty_args(q)
     q.set_defaults(func=_cmd_bench)
+    return what

@@ -32,6 +32,9 @@ class PolicyEpisode:
     fields: list[UncertaintyResult] = field(default_factory=list)  # kept only when asked
     context: list[float] = field(default_factory=list)  # task-specific signal per step (see CONTEXT)
     probe_inputs: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # (obs history, centre)
+    trace: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(
+        default_factory=list
+    )  # (obs history, current, action)
 
     def summary(self) -> dict:
         u = np.asarray(self.uncertainty)
@@ -78,6 +81,7 @@ def _run_wave(
     estimator: UncertaintyEstimator | None,
     keep_fields: bool,
     bar: tqdm,
+    trace: bool = False,
 ) -> list[PolicyEpisode]:
     n = len(seeds)
     obs = np.stack([t.reset(s) for t, s in zip(tasks, seeds, strict=True)])
@@ -86,11 +90,11 @@ def _run_wave(
     active = np.ones(n, dtype=bool)
     while active.any():
         action = policy.select_action(torch.as_tensor(obs, dtype=torch.float32)).numpy().astype(np.float64)
+        history = policy.observation_history()
+        if estimator is not None or trace:
+            current = np.stack([t.hold_action() for t in tasks[:n]]).astype(np.float32)
         if estimator is not None:
-            center = policy.normalize_action(
-                torch.as_tensor(np.stack([t.hold_action() for t in tasks[:n]]), dtype=torch.float32)
-            )
-            history = policy.observation_history()
+            center = policy.normalize_action(torch.as_tensor(current))
             batch = estimator(policy.noise_prediction, history, center, chunk=policy.config.action_horizon)
         for i in np.flatnonzero(active):
             ep = episodes[i]
@@ -102,6 +106,8 @@ def _run_wave(
                     ep.probe_inputs.append((history[i].numpy(), center[i].numpy()))
             if keep_fields:
                 ep.context.append(context_for(tasks[i].name)[1](tasks[i]))
+            if trace:
+                ep.trace.append((history[i].numpy(), current[i], action[i].astype(np.float32)))
             result = tasks[i].step(action[i])
             obs[i] = result.obs
             ep.steps = result.t
@@ -121,9 +127,11 @@ def rollout_policy(
     estimator: UncertaintyEstimator | None = None,
     keep_fields: bool = False,
     progress: bool = True,
+    trace: bool = False,
 ) -> tuple[list[PolicyEpisode], dict]:
     """Runs one autonomous episode per seed; an episode ends at success or at the task horizon.
 
+    ``trace`` keeps every step's observation history, current pose action and executed action.
     Returns (episodes, timing).
     """
     if n_envs < 1:
@@ -138,7 +146,7 @@ def rollout_policy(
     try:
         for w in range(0, len(seeds), len(tasks)):
             wave = seeds[w : w + len(tasks)]
-            episodes += _run_wave(policy, tasks[: len(wave)], wave, estimator, keep_fields, bar)
+            episodes += _run_wave(policy, tasks[: len(wave)], wave, estimator, keep_fields, bar, trace)
     finally:
         bar.close()
         for t in tasks:

@@ -104,3 +104,28 @@ def plot_field(r: UncertaintyResult, out: Path, title: str) -> Path:
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
+
+
+def plot_signal_comparison(episode, thresholds: dict[str, float], out: Path, title: str) -> Path:
+    """Every signal's score over one assisted episode, each divided by its own threshold (1 = asks),
+    with the operator's steps shaded: the signals compared on the same trajectory."""
+    names = [n for n in episode.scores if n not in ("full-teleop", "random")]
+    fig, axes = plt.subplots(len(names), 1, figsize=(8, 1.3 * len(names) + 1), sharex=True, squeeze=False)
+    operator = np.asarray(episode.operator, dtype=bool)
+    steps = np.arange(len(operator))
+    for ax, name in zip(axes[:, 0], names, strict=True):
+        ratio = np.asarray(episode.scores[name], dtype=float) / max(thresholds[name], 1e-12)
+        top = max(2.0, float(np.nanmax(ratio)) * 1.05) if np.isfinite(ratio).any() else 2.0
+        ax.fill_between(steps, 0, top, where=operator, color="tab:orange", alpha=0.2, step="mid", lw=0)
+        ax.plot(steps, ratio, color="black", lw=1)
+        ax.axhline(1.0, color="tab:red", ls="--", lw=0.8)
+        ax.set_ylim(0, top)
+        ax.set_ylabel(name, rotation=0, ha="right", va="center", fontsize=8)
+    axes[0, 0].set_title(
+        f"{title}\nscore / threshold (red: asks); shaded: operator in control ({episode.driver} drives)", fontsize=9
+    )
+    axes[-1, 0].set_xlabel("control step")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out

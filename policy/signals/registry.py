@@ -1,0 +1,106 @@
+"""The signal registry (``make_signal``) and signal folders next to the policy.
+
+``<policy>/signals/<name>/config.json`` holds the signal's config, its calibration and how it was
+made; signals with auxiliary networks add ``model.safetensors``. Nothing is pickled.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields
+from pathlib import Path
+
+from safetensors.torch import load_file, save_file
+
+from policy.diffusion_policy import DiffusionPolicy
+from policy.signals.base import AssistanceSignal, SignalConfig, SignalError
+from policy.signals.critics import HulaSignal, ThriftySignal
+from policy.signals.reference import FullTeleopSignal, RandomSignal
+from policy.signals.sampling import DenoisingSignal, DiffDaggerSignal, OutputVarianceSignal, StacSignal
+
+SIGNALS: dict[str, type[AssistanceSignal]] = {
+    "denoising": DenoisingSignal,
+    "output-variance": OutputVarianceSignal,
+    "diff-dagger": DiffDaggerSignal,
+    "thrifty": ThriftySignal,
+    "stac": StacSignal,
+    "hula-offline": HulaSignal,
+    "full-teleop": FullTeleopSignal,
+    "random": RandomSignal,
+}
+
+FORMAT = "hitl-assistance-signal/1"
+SIGNAL_DIR = "signals"
+CONFIG = "config.json"
+WEIGHTS = "model.safetensors"
+
+
+def signal_class(name: str) -> type[AssistanceSignal]:
+    if name not in SIGNALS:
+        raise KeyError(f"unknown signal {name!r}; registered signals: {', '.join(SIGNALS)}")
+    return SIGNALS[name]
+
+
+def config_from_dict(name: str, values: dict) -> SignalConfig:
+    cls = signal_class(name).Config
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise SignalError(f"unknown {name} config keys {unknown}; known: {sorted(known)}")
+    return cls(**values)
+
+
+def make_signal(name: str, policy: DiffusionPolicy, config: SignalConfig | dict | None = None) -> AssistanceSignal:
+    cls = signal_class(name)
+    if isinstance(config, dict):
+        config = config_from_dict(name, config)
+    return cls(policy, config)
+
+
+def signal_dir(policy_dir: str | Path, name: str) -> Path:
+    return Path(policy_dir) / SIGNAL_DIR / name
+
+
+def save_signal(signal: AssistanceSignal, policy_dir: str | Path, info: dict | None = None) -> Path:
+    folder = signal_dir(policy_dir, signal.name)
+    folder.mkdir(parents=True, exist_ok=True)
+    if signal.has_models:
+        state = {k: v.detach().contiguous().cpu() for k, v in signal.model_state().items()}
+        save_file(state, str(folder / WEIGHTS), metadata={"format": FORMAT})
+    doc = {
+        "format": FORMAT,
+        "signal": signal.name,
+        "config": signal.config.to_dict(),
+        "calibration": signal.calibration,
+        **(info or {}),
+    }
+    (folder / CONFIG).write_text(json.dumps(doc, indent=2) + "\n")
+    return folder
+
+
+def load_signal(policy: DiffusionPolicy, policy_dir: str | Path, name: str) -> AssistanceSignal:
+    """The calibrated signal saved by ``hitl train-signal`` (SignalError naming the missing file)."""
+    folder = signal_dir(policy_dir, name)
+    path = folder / CONFIG
+    if not path.is_file():
+        raise SignalError(f"{path} not found: run `hitl train-signal --policy {policy_dir} --signal {name}`")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise SignalError(f"{path} is not valid JSON: {exc}") from exc
+    if doc.get("format") != FORMAT or doc.get("signal") != name:
+        raise SignalError(f"{path}: expected format {FORMAT!r} for signal {name!r}")
+    try:
+        signal = make_signal(name, policy, doc.get("config", {}))
+    except (TypeError, ValueError) as exc:
+        raise SignalError(f"{path}: bad config: {exc}") from exc
+    if signal.has_models:
+        weights = folder / WEIGHTS
+        if not weights.is_file():
+            raise SignalError(f"{weights} not found")
+        try:
+            signal.load_model_state(load_file(str(weights)))
+        except Exception as exc:  # safetensors and load_state_dict raise their own types
+            raise SignalError(f"{weights}: cannot load: {exc}") from exc
+    signal.calibration = doc.get("calibration")
+    return signal

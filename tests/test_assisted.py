@@ -1,0 +1,75 @@
+import numpy as np
+import torch
+
+from policy.assisted import AssistConfig, run_assisted, summarize_assisted
+from policy.config import DiffusionPolicyConfig
+from policy.diffusion_policy import DiffusionPolicy
+from policy.signals import make_signal
+from policy.signals.base import Scores, TriggerState
+from sim.registry import make_task
+
+
+def _policy(task="lift-cube"):
+    """An untrained tiny policy: its actions are noise, so any success comes from the operator."""
+    torch.manual_seed(0)
+    obs_dim = make_task(task).obs_spec.dim
+    p = DiffusionPolicy(
+        DiffusionPolicyConfig(obs_dim=obs_dim, network="mlp", mlp_hidden=16, step_embed_dim=8, num_inference_steps=2)
+    )
+    rng = np.random.default_rng(0)
+    # normalization around the lift workspace so sampled poses stay near the table
+    acts = np.concatenate(
+        [rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0], (64, 3)), np.tile([0, 1, 0, 1, 0, 0, -1], (64, 1))], 1
+    )
+    p.fit_normalizers(rng.normal(size=(64, obs_dim)), acts)
+    return p.eval()
+
+
+class _Every:
+    """Asks on a fixed schedule: a hand-made driver to check the takeover bookkeeping."""
+
+    name = "schedule"
+
+    def __init__(self, period):
+        self.period = period
+        self.t = {}
+
+    def reset(self, robot_ids=None):
+        self.t = {}
+
+    def score(self, batch):
+        return Scores(np.zeros(len(batch)))
+
+    def wants_help(self, scores, state):
+        out = []
+        for rid in state.robot_ids:
+            self.t[int(rid)] = self.t.get(int(rid), -1) + 1
+            out.append(self.t[int(rid)] % self.period == 0)
+        return np.array(out)
+
+
+def test_budgeted_takeovers_last_the_budget_and_shadow_signals_score_every_step():
+    policy = _policy()
+    shadow = {"denoising": make_signal("denoising", policy, {"num_samples": 16, "max_modes": 2})}
+    shadow["denoising"].calibration = {"threshold": 1e9}
+    cfg = AssistConfig(mode="budgeted", budget=3, n_envs=2)
+    episodes, _ = run_assisted(policy, "lift-cube", [5, 6], _Every(10), shadow, cfg, progress=False)
+    for ep in episodes:
+        assert len(ep.operator) == ep.steps
+        assert len(ep.scores["denoising"]) == ep.steps and np.isfinite(ep.scores["denoising"]).all()
+        # every takeover is exactly `budget` operator steps, then the policy is back
+        runs = np.diff(np.flatnonzero(np.diff(np.r_[0, np.asarray(ep.operator, int), 0])))[::2]
+        assert ep.events == len(runs) and (runs == 3).all() or ep.success
+    summary = summarize_assisted(episodes)
+    assert summary["help_rate"]["denoising"] == 0.0  # threshold never crossed in shadow
+
+
+def test_full_teleop_in_continuous_mode_lets_the_operator_finish_the_task():
+    policy = _policy()
+    driver = make_signal("full-teleop", policy)
+    episodes, _ = run_assisted(
+        policy, "lift-cube", [7], driver, {}, AssistConfig(mode="continuous", n_envs=1), progress=False
+    )
+    ep = episodes[0]
+    assert ep.success and all(ep.operator) and ep.events == 1
+    assert TriggerState.autonomous([1]).teleop.tolist() == [False]

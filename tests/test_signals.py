@@ -1,0 +1,268 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from policy.config import DiffusionPolicyConfig
+from policy.diffusion_policy import DiffusionPolicy
+from policy.signals import SIGNALS, SignalError, SignalInput, TriggerState, load_signal, make_signal, save_signal
+from policy.signals.base import CalibrationData, Scores, StepSet
+from policy.signals.sampling import rbf_mmd2
+
+OBS_DIM, CHUNK = 4, 4
+FAST = {  # keep every auxiliary training and calibration tiny
+    "denoising": {"num_samples": 16, "max_modes": 2},
+    "output-variance": {"num_samples": 8, "max_calibration_steps": 24},
+    "diff-dagger": {"noise_draws": 2, "max_calibration_steps": 12},
+    "thrifty": {"hidden": [16], "bc_steps": 30, "q_steps": 30},
+    "stac": {"num_samples": 8},
+    "hula-offline": {"hidden": [16], "steps": 30},
+    "full-teleop": {},
+    "random": {"rate": 0.5},
+}
+
+
+def _steps(n_episodes, length, seed, success=True, shift=0.0):
+    rng = np.random.default_rng(seed)
+    m = n_episodes * length
+    obs = rng.uniform(0, 1, (m, 1, OBS_DIM)).astype(np.float32) + shift
+    base = np.concatenate([obs[:, 0, :3], np.full((m, 6), 0.5), obs[:, 0, 3:4]], axis=1)
+    action = np.stack([base + 0.01 * c for c in range(CHUNK)], axis=1).astype(np.float32)
+    return StepSet(
+        obs=obs,
+        action=action,
+        current=base.astype(np.float32),
+        episode=np.repeat(np.arange(n_episodes), length),
+        t=np.tile(np.arange(length), n_episodes),
+        last=np.full(m, length - 1),
+        success=np.full(m, success) if isinstance(success, bool) else np.repeat(success, length),
+        names=[f"ep{i}" for i in range(n_episodes)],
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    torch.manual_seed(0)
+    cfg = DiffusionPolicyConfig(
+        obs_dim=OBS_DIM,
+        action_horizon=CHUNK,
+        network="mlp",
+        mlp_hidden=32,
+        step_embed_dim=8,
+        obs_encoder_dims=(16,),
+        num_inference_steps=2,
+    )
+    policy = DiffusionPolicy(cfg)
+    data = CalibrationData(
+        train=_steps(6, 6, 0),
+        val=_steps(2, 6, 1),
+        rollouts=_steps(4, 6, 2, success=np.array([True, True, False, True])),
+    )
+    policy.fit_normalizers(data.train.obs[:, 0], data.train.action[:, 0])
+    return policy.eval(), data
+
+
+def _batch(data, rows, ids, operator=False):
+    steps = data.val
+    op = torch.as_tensor(steps.current[rows]) if operator else None
+    return SignalInput(torch.as_tensor(steps.obs[rows]), torch.as_tensor(steps.current[rows]), ids, operator_action=op)
+
+
+@pytest.mark.parametrize("name", list(SIGNALS))
+def test_every_signal_calibrates_and_scores_a_tiny_policy(tiny, name, tmp_path):
+    policy, data = tiny
+    signal = make_signal(name, policy, FAST[name])
+    if signal.has_models:
+        signal.fit(data, progress=False)
+    rec = signal.calibrate(data)
+    assert np.isfinite(rec["threshold"]) and rec["samples"] >= 0
+    batch = _batch(data, np.arange(3), np.array([10, 11, 12]), operator=True)
+    scores = signal.score(batch)
+    assert scores.value.shape == (3,) and np.isfinite(scores.value).all()
+    assert all(np.isfinite(v).all() for k, v in scores.parts.items() if k != "discrepancy")
+    wants = signal.wants_help(scores, TriggerState.autonomous([10, 11, 12]))
+    assert wants.shape == (3,) and wants.dtype == bool
+    signal.reset([10, 11, 12])
+    # saved and loaded next to the policy, it scores the same
+    save_signal(signal, tmp_path, {"command": "test"})
+    doc = json.loads((tmp_path / "signals" / name / "config.json").read_text())
+    assert doc["calibration"]["threshold"] == rec["threshold"]
+    loaded = load_signal(policy, tmp_path, name)
+    if name not in ("random",):
+        signal.reset()
+        loaded.reset()
+        signal._generator.manual_seed(5)
+        loaded._generator.manual_seed(5)
+        if name == "denoising":
+            signal.estimator.reset()
+            loaded.estimator.reset()
+        np.testing.assert_allclose(loaded.score(batch).value, signal.score(batch).value, rtol=1e-6)
+
+
+class GaussianPolicy(DiffusionPolicy):
+    """Analytic stand-in: actions ~ N(mean, std²) per dimension in a normalized space equal to the raw
+    one, with obs[..., 0] = std and obs[..., 1] = mean; ε_θ is the exact noise of that distribution."""
+
+    def __init__(self, chunk=CHUNK):
+        super().__init__(
+            DiffusionPolicyConfig(obs_dim=OBS_DIM, action_horizon=chunk, network="mlp", mlp_hidden=8, step_embed_dim=8)
+        )
+        self.fit_normalizers(np.array([[0.0] * OBS_DIM, [1.0] * OBS_DIM]), np.array([[0.0] * 10, [1.0] * 10]))
+
+    @staticmethod
+    def _params(obs):
+        return obs[:, -1, 0], obs[:, -1, 1]
+
+    def noise_prediction(self, obs, actions, k):
+        std, mean = self._params(obs)
+        ab = self.schedule.alphas_cumprod[torch.as_tensor(k).expand(obs.shape[0])]
+        shape = (-1,) + (1,) * (actions.dim() - 1)
+        ab, std, mean = ab.view(shape), std.view(shape), mean.view(shape)
+        return (1 - ab).sqrt() * (actions - ab.sqrt() * mean) / (ab * std**2 + 1 - ab)
+
+    def predict_action_chunk(self, obs, generator=None):
+        std, mean = self._params(obs)
+        noise = torch.randn((obs.shape[0], self.config.action_horizon, 10), generator=generator)
+        return mean[:, None, None] + std[:, None, None] * noise
+
+
+def _obs(std, mean):
+    o = torch.zeros((len(std), 1, OBS_DIM))
+    o[:, 0, 0], o[:, 0, 1] = torch.as_tensor(std), torch.as_tensor(mean)
+    return o
+
+
+def test_output_variance_is_higher_for_a_wider_action_distribution():
+    signal = make_signal("output-variance", GaussianPolicy(), {"num_samples": 64})
+    obs = _obs([0.01, 0.05, 0.2], [0.5, 0.5, 0.5])
+    value = signal.score(SignalInput(obs, torch.full((3, 10), 0.5), np.arange(3))).value
+    assert value[0] < value[1] < value[2]
+    np.testing.assert_allclose(value, np.array([0.01, 0.05, 0.2]) ** 2, rtol=0.35)
+
+
+def test_diff_dagger_loss_is_higher_off_the_data_manifold():
+    policy = GaussianPolicy(chunk=1)
+    signal = make_signal("diff-dagger", policy, {"noise_draws": 8})
+    obs = _obs([0.05, 0.05], [0.5, 0.5])
+    on = torch.full((1, 1, 10), 0.5)
+    off = torch.full((1, 1, 10), 0.9)  # 8 standard deviations away
+    loss = signal.diffusion_loss(obs, torch.cat([on, off])).numpy()
+    assert loss[1] > 3 * loss[0]
+    # the policy's own samples are on the manifold: about the same loss as the mean action
+    sampled = signal.score(SignalInput(obs[:1], torch.full((1, 10), 0.5), np.array([0]))).value
+    assert sampled[0] < loss[1] / 2
+
+
+def test_stac_score_is_higher_when_consecutive_chunks_disagree():
+    signal = make_signal("stac", GaussianPolicy(), {"num_samples": 64})
+    current = torch.full((2, 10), 0.5)
+    ids = np.array([0, 1])
+    signal.score(SignalInput(_obs([0.05, 0.05], [0.5, 0.5]), current, ids))
+    # robot 0 keeps its plan, robot 1's plan jumps
+    s = signal.score(SignalInput(_obs([0.05, 0.05], [0.5, 0.8]), current, ids))
+    assert s.parts["step"][1] > 10 * max(s.parts["step"][0], 1e-6)
+    # cumulative over the episode: the score is the running sum of the per-step MMD²
+    s2 = signal.score(SignalInput(_obs([0.05, 0.05], [0.5, 0.5]), current, ids))
+    np.testing.assert_allclose(s2.value, s.value + s2.parts["step"])
+    signal.reset([1])
+    s3 = signal.score(SignalInput(_obs([0.05, 0.05], [0.5, 0.5]), current, ids))
+    assert s3.parts["step"][1] == 0 and s3.value[1] == 0  # a reset robot starts a new episode
+
+
+def test_stac_needs_a_chunked_policy():
+    with pytest.raises(SignalError, match="action_horizon > 1"):
+        make_signal("stac", GaussianPolicy(chunk=1))
+
+
+def test_rbf_mmd_is_zero_for_identical_sets_and_grows_with_shift():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn((1, 64, 3), generator=g, dtype=torch.float64)
+    assert float(rbf_mmd2(x, x)) == pytest.approx(0.0, abs=1e-12)
+    near, far = rbf_mmd2(x, x + 0.1), rbf_mmd2(x, x + 3.0)
+    assert float(far) > float(near) > 0
+
+
+def test_ensemble_variance_is_higher_away_from_the_training_data(tiny):
+    policy, data = tiny
+    signal = make_signal("thrifty", policy, {"hidden": [32, 32], "bc_steps": 400, "q_steps": 20})
+    signal.fit(data, progress=False)
+    signal.calibrate(data)
+    near = signal.score(_batch(data, np.arange(6), np.arange(6))).parts["novelty"]
+    far_obs = torch.as_tensor(data.val.obs[:6]) + 3.0  # far outside the unit box the demos cover
+    far = signal.score(SignalInput(far_obs, torch.as_tensor(data.val.current[:6]), np.arange(6))).parts["novelty"]
+    assert np.median(far) > 10 * np.median(near)
+
+
+def test_diff_dagger_patience_needs_consecutive_steps(tiny):
+    signal = make_signal("diff-dagger", tiny[0])
+    signal.calibration = {"threshold": 1.0}
+    state = TriggerState.autonomous([7, 8])
+    seq = [[2.0, 2.0], [0.5, 2.0], [2.0, 2.0], [2.0, 0.5]]
+    got = [signal.wants_help(Scores(np.array(v)), state).tolist() for v in seq]
+    assert got == [[False, False], [False, True], [False, True], [True, False]]
+    signal.reset([7])
+    assert signal.wants_help(Scores(np.array([2.0, 2.0])), state).tolist() == [False, False]
+
+
+def test_thrifty_switches_back_only_when_actions_agree_and_it_is_safe(tiny):
+    signal = make_signal("thrifty", tiny[0])
+    signal.calibration = {
+        "threshold": 1.0,
+        "novelty_threshold": 1.0,
+        "risk_threshold": 0.5,
+        "switch_back_discrepancy": 0.1,
+        "switch_back_safety": 0.6,
+    }
+    parts = {
+        "novelty": np.array([0.1, 0.1, 0.1, 0.1]),
+        "risk": np.array([0.2, 0.2, 0.7, 0.2]),  # safety 0.8, 0.8, 0.3, 0.8
+        "discrepancy": np.array([0.05, 0.5, 0.05, np.nan]),
+    }
+    scores = Scores(np.array([0.4, 0.4, 1.4, 0.4]), parts)
+    teleop = TriggerState(np.arange(4), np.ones(4, dtype=bool))
+    # under teleop: keeps asking unless actions agree and safety is high; no operator action: keeps asking
+    assert signal.wants_help(scores, teleop).tolist() == [False, True, True, True]
+    auto = TriggerState.autonomous(range(4))
+    assert signal.wants_help(scores, auto).tolist() == [False, False, True, False]
+
+
+def test_random_asks_at_its_rate(tiny):
+    signal = make_signal("random", tiny[0], {"rate": 0.2, "seed": 3})
+    ids = np.arange(1000)
+    asks = signal.wants_help(
+        signal.score(SignalInput(torch.zeros(1000, 1, OBS_DIM), torch.zeros(1000, 10), ids)),
+        TriggerState.autonomous(ids),
+    )
+    assert 0.16 < asks.mean() < 0.24
+    signal.match_rate(0.0)
+    assert not signal.wants_help(Scores(np.array([0.999])), TriggerState.autonomous([0])).any()
+
+
+@pytest.mark.parametrize(
+    ("name", "config", "match"),
+    [
+        ("output-variance", {"num_samples": 1}, "num_samples"),
+        ("diff-dagger", {"quantile": 1.5}, "quantile"),
+        ("thrifty", {"members": 1}, "members"),
+        ("hula-offline", {"gamma": 1.0}, "gamma"),
+        ("random", {"rate": float("nan")}, "rate"),
+        ("denoising", {"backend": "gpu"}, "backend"),
+        ("stac", {"bogus": 1}, "unknown"),
+    ],
+)
+def test_signal_config_errors_name_the_bad_value(tiny, name, config, match):
+    with pytest.raises(ValueError, match=match):
+        make_signal(name, tiny[0], config)
+
+
+def test_unknown_signal_and_missing_files_get_clear_errors(tiny, tmp_path):
+    with pytest.raises(KeyError, match="registered signals"):
+        make_signal("nope", tiny[0])
+    with pytest.raises(SignalError, match="hitl train-signal"):
+        load_signal(tiny[0], tmp_path, "thrifty")
+    signal = make_signal("hula-offline", tiny[0], FAST["hula-offline"])
+    with pytest.raises(SignalError, match="no trained models"):
+        signal.calibrate(tiny[1])
+    with pytest.raises(SignalError, match="rollouts"):
+        signal.calibrate(CalibrationData(tiny[1].train, tiny[1].val))
