@@ -39,3 +39,13 @@ EE_FRAME = "ee"
 
 EPISODE_GLOB = "*.mcap"
 CACHE_DIR = ".cache"
+
+# -- takeover segments (one MCAP file per operator takeover) --------------------------------------
+TOPIC_TAKEOVER = "/takeover"  # once, first: robot, episode, policy version, operator, task, reason
+TOPIC_TAKEOVER_STEP = "/takeover/step"  # per step: obs, command, fine-tune label, U, shadow scores, pose
+TOPIC_TAKEOVER_END = "/takeover/end"  # once, last: status, steps
+TOPIC_FIELD = "/denoising/field"  # foxglove.SceneUpdate: the vector field as arrows coloured by mode
+SCHEMA_TAKEOVER = "hitl.Takeover"
+SCHEMA_TAKEOVER_STEP = "hitl.TakeoverStep"
+SCHEMA_TAKEOVER_END = "hitl.TakeoverEnd"
+SCHEMA_SCENE_UPDATE = "foxglove.SceneUpdate"

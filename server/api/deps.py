@@ -1,0 +1,69 @@
+"""Dependencies: the services built in the lifespan, and token authentication by role."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Request, WebSocket, status
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import sessionmaker
+
+from server.auth import Principal, authenticate
+from server.fleet import Fleet
+from server.settings import Settings
+
+_bearer = HTTPBearer(auto_error=False)
+
+
+def get_fleet(request: Request) -> Fleet:
+    return request.app.state.fleet
+
+
+def get_sessions(request: Request) -> sessionmaker:
+    return request.app.state.sessions
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+FleetDep = Annotated[Fleet, Depends(get_fleet)]
+SessionsDep = Annotated[sessionmaker, Depends(get_sessions)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+def _principal(request: Request, creds: HTTPAuthorizationCredentials | None) -> Principal:
+    principal = authenticate(request.app.state.sessions, creds.credentials if creds else None)
+    if principal is None:
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED, "missing or invalid API token", headers={"WWW-Authenticate": "Bearer"}
+        )
+    return principal
+
+
+def require(role: str):
+    def dependency(
+        request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+    ) -> Principal:
+        principal = _principal(request, creds)
+        if not principal.has(role):
+            raise HTTPException(
+                status.HTTP_403_FORBIDDEN, f"this needs the {role} role; your token is {principal.role}"
+            )
+        return principal
+
+    return dependency
+
+
+Viewer = Annotated[Principal, Depends(require("viewer"))]
+Operator = Annotated[Principal, Depends(require("operator"))]
+Admin = Annotated[Principal, Depends(require("admin"))]
+
+
+def websocket_principal(websocket: WebSocket, role: str) -> Principal | None:
+    """Token from ``Authorization: Bearer`` or the ``token`` query parameter; None if not allowed."""
+    header = websocket.headers.get("authorization", "")
+    token = header.removeprefix("Bearer ").strip() if header.startswith("Bearer ") else None
+    token = token or websocket.query_params.get("token")
+    principal = authenticate(websocket.app.state.sessions, token)
+    return principal if principal is not None and principal.has(role) else None

@@ -1,0 +1,83 @@
+"""``/episodes``, ``/segments`` (list, filter, download the MCAP file), ``/policies``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import APIRouter, HTTPException, Query
+from fastapi.responses import FileResponse
+from sqlalchemy import select
+
+from server.api.deps import FleetDep, SessionsDep, Viewer
+from server.api.schemas import EpisodeOut, PolicyOut, SegmentOut
+from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
+
+router = APIRouter(tags=["records"])
+
+
+@router.get("/episodes", response_model=list[EpisodeOut])
+def episodes(
+    sessions: SessionsDep,
+    _: Viewer,
+    robot_id: int | None = None,
+    task: str | None = None,
+    outcome: str | None = None,
+    limit: int = Query(100, ge=1, le=1000),
+) -> list[EpisodeRecord]:
+    q = select(EpisodeRecord).order_by(EpisodeRecord.id.desc()).limit(limit)
+    if robot_id is not None:
+        q = q.where(EpisodeRecord.robot_id == robot_id)
+    if task is not None:
+        q = q.where(EpisodeRecord.task == task)
+    if outcome is not None:
+        q = q.where(EpisodeRecord.outcome == outcome)
+    with sessions() as s:
+        return list(s.scalars(q))
+
+
+@router.get("/segments", response_model=list[SegmentOut])
+def segments(
+    sessions: SessionsDep,
+    _: Viewer,
+    robot_id: int | None = None,
+    task: str | None = None,
+    status: str | None = None,
+    operator: str | None = None,
+    limit: int = Query(100, ge=1, le=1000),
+) -> list[SegmentRecord]:
+    q = select(SegmentRecord).order_by(SegmentRecord.id.desc()).limit(limit)
+    for column, value in (
+        (SegmentRecord.robot_id, robot_id),
+        (SegmentRecord.task, task),
+        (SegmentRecord.status, status),
+        (SegmentRecord.operator, operator),
+    ):
+        if value is not None:
+            q = q.where(column == value)
+    with sessions() as s:
+        return list(s.scalars(q))
+
+
+@router.get("/segments/{segment_id}/mcap", response_class=FileResponse)
+def download_segment(segment_id: int, sessions: SessionsDep, _: Viewer) -> FileResponse:
+    with sessions() as s:
+        row = s.get(SegmentRecord, segment_id)
+    if row is None:
+        raise HTTPException(404, f"no segment {segment_id}")
+    if row.status == "open":
+        raise HTTPException(409, f"segment {segment_id} is still being recorded")
+    path = Path(row.path)
+    if not path.is_file():
+        raise HTTPException(410, f"segment {segment_id}'s file is gone")
+    return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+
+@router.get("/policies", response_model=list[PolicyOut])
+def policies(sessions: SessionsDep, fleet: FleetDep, _: Viewer) -> list[PolicyOut]:
+    with sessions() as s:
+        rows = list(s.scalars(select(PolicyVersion).order_by(PolicyVersion.id)))
+    with fleet.lock:
+        running = {}
+        for r in fleet.robots.values():
+            running.setdefault(r.slot.id, []).append(r.id)
+    return [PolicyOut.model_validate(row).model_copy(update={"robots": running.get(row.id, [])}) for row in rows]

@@ -1,0 +1,129 @@
+"""``/robots``: list, get, operator view; pause, resume, reset (admin)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, HTTPException
+
+from server.api.deps import Admin, FleetDep, Viewer
+from server.api.schemas import OperatorView, PoseOut, RobotDetail, RobotSummary, UncertaintyOut
+from server.fleet import Fleet, FleetError, Robot
+
+router = APIRouter(prefix="/robots", tags=["robots"])
+
+
+def _pose(p, q) -> PoseOut:
+    return PoseOut(position=[float(x) for x in p], quaternion=[float(x) for x in q])
+
+
+def _uncertainty(robot: Robot) -> UncertaintyOut | None:
+    r = robot.last_result
+    if r is None:
+        return None
+    return UncertaintyOut(
+        U=r["U"],
+        D=r["D"],
+        var_g=r["var_g"],
+        n=r["n"],
+        threshold=robot.slot.threshold,
+        samples=r["samples"].tolist(),
+        vectors=r["vectors"].tolist(),
+        labels=r["labels"].tolist(),
+        means=r["means"].tolist(),
+        weights=r["weights"].tolist(),
+    )
+
+
+def summary(robot: Robot) -> RobotSummary:
+    return RobotSummary(
+        id=robot.id,
+        task=robot.task,
+        mode=robot.mode,
+        policy_version=robot.slot.id,
+        episode_id=robot.episode_id,
+        episode_step=robot.steps,
+        uncertainty=robot.u_history[-1] if robot.u_history else None,
+        threshold=robot.slot.threshold,
+    )
+
+
+def _bodies(robot: Robot) -> dict[str, PoseOut]:
+    frame = robot.frame
+    return {k: _pose(p, q) for k, (p, q) in frame["bodies"].items()} if frame else {}
+
+
+def detail(robot: Robot) -> RobotDetail:
+    frame = robot.frame
+    return RobotDetail(
+        **summary(robot).model_dump(),
+        pose=_pose(frame["pos"], frame["quat"]) if frame else None,
+        gripper=frame["gripper"] if frame else None,
+        bodies=_bodies(robot),
+        u_history=list(robot.u_history),
+        last_uncertainty=_uncertainty(robot),
+        episodes_done=robot.episodes_done,
+        successes=robot.successes,
+        assisted_steps=robot.assisted_steps,
+        assistance_events=robot.events,
+        restarts=robot.restarts,
+        fault=robot.fault,
+    )
+
+
+def _get(fleet: Fleet, robot_id: int) -> Robot:
+    try:
+        return fleet.robot(robot_id)
+    except FleetError as exc:
+        raise HTTPException(exc.status, str(exc)) from exc
+
+
+@router.get("", response_model=list[RobotSummary])
+def list_robots(fleet: FleetDep, _: Viewer) -> list[RobotSummary]:
+    with fleet.lock:
+        return [summary(r) for r in fleet.robots.values()]
+
+
+@router.get("/{robot_id}", response_model=RobotDetail)
+def get_robot(robot_id: int, fleet: FleetDep, _: Viewer) -> RobotDetail:
+    with fleet.lock:
+        return detail(_get(fleet, robot_id))
+
+
+@router.get("/{robot_id}/view", response_model=OperatorView)
+def operator_view(robot_id: int, fleet: FleetDep, _: Viewer) -> OperatorView:
+    """What a human operator sees: the scene's body poses, the goal and the last denoising result."""
+    with fleet.lock:
+        robot = _get(fleet, robot_id)
+        frame = robot.frame
+        return OperatorView(
+            robot_id=robot.id,
+            task=robot.task,
+            mode=robot.mode,
+            pose=_pose(frame["pos"], frame["quat"]) if frame else None,
+            gripper=frame["gripper"] if frame else None,
+            bodies=_bodies(robot),
+            goal=frame["goal"] if frame else {},
+            last_uncertainty=_uncertainty(robot),
+        )
+
+
+def _act(fleet: Fleet, robot_id: int, method: str) -> RobotSummary:
+    try:
+        getattr(fleet, method)(robot_id)
+        return summary(fleet.robot(robot_id))
+    except FleetError as exc:
+        raise HTTPException(exc.status, str(exc)) from exc
+
+
+@router.post("/{robot_id}/pause", response_model=RobotSummary)
+def pause(robot_id: int, fleet: FleetDep, _: Admin) -> RobotSummary:
+    return _act(fleet, robot_id, "pause")
+
+
+@router.post("/{robot_id}/resume", response_model=RobotSummary)
+def resume(robot_id: int, fleet: FleetDep, _: Admin) -> RobotSummary:
+    return _act(fleet, robot_id, "resume")
+
+
+@router.post("/{robot_id}/reset", response_model=RobotSummary)
+def reset(robot_id: int, fleet: FleetDep, _: Admin) -> RobotSummary:
+    return _act(fleet, robot_id, "reset")

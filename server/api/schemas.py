@@ -1,0 +1,175 @@
+"""Request and response schemas of the API."""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+MAX_DELTA_POS = 0.1  # m per command; larger is rejected (the robot clamps to 3 cm per step anyway)
+MAX_DELTA_ROT = 0.5  # rad per command
+
+
+def _finite_vector(name: str, v: list[float], limit: float) -> list[float]:
+    if len(v) != 3:
+        raise ValueError(f"{name} must have 3 components, got {len(v)}")
+    if not all(math.isfinite(x) for x in v):
+        raise ValueError(f"{name} has NaN or infinite values")
+    norm = math.sqrt(sum(x * x for x in v))
+    if norm > limit:
+        raise ValueError(f"{name} has norm {norm:.3g}, above the limit {limit}")
+    return v
+
+
+class TeleopCommandIn(BaseModel):
+    """A delta end-effector pose (world frame) and a gripper command (-1 open .. +1 closed)."""
+
+    model_config = ConfigDict(extra="forbid")
+    delta_pos: list[float] = Field(..., description=f"metres, norm <= {MAX_DELTA_POS}")
+    delta_rot: list[float] = Field(
+        default_factory=lambda: [0.0, 0.0, 0.0], description=f"rotation vector, rad, norm <= {MAX_DELTA_ROT}"
+    )
+    gripper: float = Field(..., ge=-1.0, le=1.0)
+
+    @field_validator("delta_pos")
+    @classmethod
+    def _pos(cls, v: list[float]) -> list[float]:
+        return _finite_vector("delta_pos", v, MAX_DELTA_POS)
+
+    @field_validator("delta_rot")
+    @classmethod
+    def _rot(cls, v: list[float]) -> list[float]:
+        return _finite_vector("delta_rot", v, MAX_DELTA_ROT)
+
+    @field_validator("gripper", mode="before")
+    @classmethod
+    def _gripper(cls, v):
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError("gripper is NaN or infinite")
+        return v
+
+
+class CommandAccepted(BaseModel):
+    robot_id: int
+    accepted: bool = True
+
+
+class UncertaintyOut(BaseModel):
+    U: float
+    D: float
+    var_g: float
+    n: int
+    threshold: float
+    samples: list[list[float]]
+    vectors: list[list[float]]
+    labels: list[int]
+    means: list[list[float]]
+    weights: list[float]
+
+
+class PoseOut(BaseModel):
+    position: list[float]
+    quaternion: list[float]  # xyzw
+
+
+class RobotSummary(BaseModel):
+    id: int
+    task: str
+    mode: Literal["autonomous", "waiting", "teleop", "paused", "done", "faulted"]
+    policy_version: int
+    episode_id: int | None
+    episode_step: int
+    uncertainty: float | None
+    threshold: float
+
+
+class RobotDetail(RobotSummary):
+    pose: PoseOut | None
+    gripper: float | None
+    bodies: dict[str, PoseOut]
+    u_history: list[float]
+    last_uncertainty: UncertaintyOut | None
+    episodes_done: int
+    successes: int
+    assisted_steps: int
+    assistance_events: int
+    restarts: int
+    fault: str | None
+
+
+class OperatorView(BaseModel):
+    robot_id: int
+    task: str
+    mode: str
+    pose: PoseOut | None
+    gripper: float | None
+    bodies: dict[str, PoseOut]
+    goal: dict
+    last_uncertainty: UncertaintyOut | None
+
+
+class AssistanceRequestOut(BaseModel):
+    id: int
+    robot_id: int
+    uncertainty: float
+    threshold: float
+    reason: str
+    waiting_s: float
+    priority: float
+    holder: str | None
+    lease_expires_in_s: float | None
+
+
+class EpisodeOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+    id: int
+    robot_id: int
+    task: str
+    seed: int
+    policy_id: int | None
+    outcome: str | None
+    steps: int
+    assisted_steps: int
+    assistance_events: int
+    started_at: datetime
+    ended_at: datetime | None
+
+
+class SegmentOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+    id: int
+    robot_id: int
+    episode_id: int | None
+    task: str
+    policy_id: int | None
+    operator: str
+    reason: str
+    status: str
+    steps: int
+    started_at: datetime
+    ended_at: datetime | None
+
+
+class PolicyOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+    id: int
+    name: str
+    path: str
+    task: str
+    threshold: float | None
+    robots: list[int] = []
+
+
+class FleetMetrics(BaseModel):
+    episodes: int
+    success_rate: float | None
+    assisted_steps_per_episode: float | None
+    assistance_events_per_episode: float | None
+    queue_wait_p50_s: float | None
+    queue_wait_p95_s: float | None
+    operator_busy_s: dict[str, float]
+    return_on_human_effort: float | None
+    robots_by_mode: dict[str, int]
+    ticks: int

@@ -1,0 +1,45 @@
+"""Health, readiness, fleet metrics and Prometheus ``/metrics``."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, generate_latest
+
+from server.api.deps import FleetDep, Viewer
+from server.api.schemas import FleetMetrics
+
+router = APIRouter(tags=["system"])
+api = APIRouter(tags=["metrics"])
+
+
+@router.get("/healthz")
+def healthz() -> dict:
+    return {"status": "ok"}
+
+
+@router.get("/readyz")
+def readyz(request: Request, response: Response) -> dict:
+    fleet = getattr(request.app.state, "fleet", None)
+    ready = fleet is not None and fleet.ticks > 0
+    if not ready:
+        response.status_code = 503
+    return {"ready": ready}
+
+
+@api.get("/metrics/fleet", response_model=FleetMetrics)
+def fleet_metrics(fleet: FleetDep, _: Viewer) -> dict:
+    return fleet.metrics()
+
+
+@router.get("/metrics")
+def prometheus(fleet: FleetDep, _: Viewer) -> Response:
+    registry = CollectorRegistry()
+    m = fleet.metrics()
+    Gauge("hitl_episodes_total", "finished episodes", registry=registry).set(m["episodes"])
+    Gauge("hitl_success_rate", "successful episodes / episodes", registry=registry).set(m["success_rate"] or 0)
+    Gauge("hitl_control_ticks_total", "control ticks", registry=registry).set(m["ticks"])
+    modes = Gauge("hitl_robots", "robots by mode", ["mode"], registry=registry)
+    for mode, n in m["robots_by_mode"].items():
+        modes.labels(mode).set(n)
+    Gauge("hitl_queue_length", "open assistance requests", registry=registry).set(len(fleet.queue.pending()))
+    return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)

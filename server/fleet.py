@@ -1,0 +1,547 @@
+"""The fleet runtime: robots in worker processes, the policy and its uncertainty batched across the
+fleet in the server, robot modes, takeovers and their recording.
+
+One control tick: collect every worker's latest frame (without waiting on any); for the
+autonomous robots that are ready, one batched action sample and one batched uncertainty
+evaluation per policy; then each ready robot gets its next action: the policy's, the operator's
+command, or a hold of the pose it had when it stopped (no drift).
+
+Modes: ``autonomous -> waiting -> teleop -> autonomous``, plus ``paused``, ``done`` (then the
+next episode starts) and ``faulted`` (the worker died; it is restarted with backoff).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import multiprocessing as mp
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import torch
+from sqlalchemy.orm import sessionmaker
+
+from policy.checkpoint import load_calibration, load_policy
+from policy.signals.base import SignalInput
+from policy.signals.sampling import DenoisingSignal
+from server.assistance import AssistanceQueue, QueueError
+from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
+from server.settings import Settings
+from server.worker import worker_main
+from sim.registry import make_task
+from sim.spaces import TeleopCommand
+from storage.segments import SegmentWriter
+
+log = logging.getLogger("hitl.fleet")
+
+MODES = ("autonomous", "waiting", "teleop", "paused", "done", "faulted")
+U_HISTORY = 300
+RESTART_BACKOFF = (1.0, 2.0, 5.0, 10.0, 30.0)
+
+
+class FleetError(Exception):
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass
+class PolicySlot:
+    id: int
+    path: Path
+    policy: object
+    task: str
+    threshold: float
+    signal: DenoisingSignal
+
+
+@dataclass
+class Robot:
+    id: int
+    task: str
+    slot: PolicySlot
+    action_space: object
+    seed: int
+    process: mp.Process | None = None
+    conn: object | None = None
+    mode: str = "autonomous"
+    frame: dict | None = None
+    awaiting: bool = False
+    history: deque = field(default_factory=deque)
+    hold_target: np.ndarray | None = None
+    command: tuple[TeleopCommand, float] | None = None  # (command, monotonic receive time)
+    teleop_left: int | None = None
+    below: int = 0
+    episode_id: int | None = None
+    steps: int = 0
+    assisted_steps: int = 0
+    events: int = 0
+    episodes_done: int = 0
+    successes: int = 0
+    u_history: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))
+    last_result: dict | None = None
+    segment: SegmentWriter | None = None
+    segment_id: int | None = None
+    restarts: int = 0
+    restart_at: float | None = None
+    fault: str | None = None
+    paused_from: str | None = None
+    latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
+
+
+class Fleet:
+    def __init__(self, settings: Settings, sessions: sessionmaker) -> None:
+        self.settings = settings
+        self.sessions = sessions
+        self.queue = AssistanceQueue(settings.lease_seconds)
+        self.robots: dict[int, Robot] = {}
+        self.slots: dict[str, PolicySlot] = {}
+        self.lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.ticks = 0
+        self.tick_periods: deque = deque(maxlen=2000)
+        self._ctx = mp.get_context("spawn")
+        self.operator_busy: dict[str, float] = {}
+        self._build()
+
+    # -- set-up -------------------------------------------------------------------------------------------
+    def _slot(self, path: Path, task: str) -> PolicySlot:
+        key = str(path.resolve())
+        if key in self.slots:
+            return self.slots[key]
+        policy, info = load_policy(path)
+        calibration = load_calibration(path)
+        if calibration is None:
+            raise FleetError(500, f"policy {path} has no calibration.json: run `hitl calibrate --policy {path}`")
+        obs_dim = make_task(task).obs_spec.dim
+        if policy.config.obs_dim != obs_dim:
+            raise FleetError(
+                500, f"policy {path} expects {policy.config.obs_dim}-dim observations, {task} gives {obs_dim}"
+            )
+        signal = DenoisingSignal(policy)
+        signal.calibration = {"threshold": float(calibration["threshold"])}
+        with self.sessions() as s:
+            row = s.query(PolicyVersion).filter_by(path=key).one_or_none()
+            if row is None:
+                row = PolicyVersion(
+                    name=path.name, path=key, task=info.get("task", task), threshold=calibration["threshold"]
+                )
+                s.add(row)
+                s.commit()
+            pid = row.id
+        slot = PolicySlot(pid, path, policy, task, float(calibration["threshold"]), signal)
+        self.slots[key] = slot
+        return slot
+
+    def _build(self) -> None:
+        rid = 0
+        for group in self.settings.robots:
+            if group.policy is None:
+                raise FleetError(500, f"robot group {group.task}: no policy folder given")
+            slot = self._slot(Path(group.policy), group.task)
+            for _ in range(group.count):
+                task = make_task(group.task)  # its action space; the simulator lives in the worker
+                self.robots[rid] = Robot(rid, group.task, slot, task.action_space, self.settings.seed + 1000 * rid)
+                rid += 1
+
+    # -- workers -------------------------------------------------------------------------------------------
+    def _spawn(self, robot: Robot) -> None:
+        parent, child = self._ctx.Pipe()
+        proc = self._ctx.Process(target=worker_main, args=(child, robot.task), daemon=True, name=f"robot-{robot.id}")
+        proc.start()
+        child.close()
+        robot.process, robot.conn = proc, parent
+        self._new_episode(robot)
+
+    def _new_episode(self, robot: Robot) -> None:
+        robot.seed += 1
+        robot.steps = robot.assisted_steps = robot.events = 0
+        robot.history.clear()
+        robot.hold_target = None
+        robot.mode = "autonomous" if robot.mode != "paused" else "paused"
+        with self.sessions() as s:
+            row = EpisodeRecord(robot_id=robot.id, task=robot.task, seed=robot.seed, policy_id=robot.slot.id)
+            s.add(row)
+            s.commit()
+            robot.episode_id = row.id
+        robot.conn.send(("reset", robot.seed))
+        robot.awaiting = True
+
+    def _fault(self, robot: Robot, why: str) -> None:
+        log.warning("robot %d faulted: %s", robot.id, why.splitlines()[-1] if why else why)
+        self._close_segment(robot, "closed")
+        self.queue.close(robot.id)
+        robot.mode, robot.fault, robot.awaiting = "faulted", why, False
+        if robot.process is not None and robot.process.is_alive():
+            robot.process.kill()
+        robot.process = robot.conn = None
+        delay = RESTART_BACKOFF[min(robot.restarts, len(RESTART_BACKOFF) - 1)]
+        robot.restart_at = time.monotonic() + delay
+        robot.restarts += 1
+
+    def start(self) -> None:
+        for robot in self.robots.values():
+            self._spawn(robot)
+        self._thread = threading.Thread(target=self._loop, name="fleet-control", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Finishes the current tick, closes open segments, stops the workers."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=30)
+        with self.lock:
+            for robot in self.robots.values():
+                self._close_segment(robot, "closed")
+                if robot.conn is not None:
+                    with contextlib.suppress(OSError, BrokenPipeError):
+                        robot.conn.send(("close", None))
+            for robot in self.robots.values():
+                if robot.process is not None:
+                    robot.process.join(timeout=5)
+                    if robot.process.is_alive():
+                        robot.process.kill()
+
+    # -- the control loop --------------------------------------------------------------------------------
+    def _loop(self) -> None:
+        period = 1.0 / self.settings.control_hz if self.settings.control_hz > 0 else 0.0
+        last = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                start = time.monotonic()
+                try:
+                    with self.lock:
+                        self.tick()
+                except Exception:  # a bug in one tick must not stop the fleet
+                    log.exception("control tick failed")
+                now = time.monotonic()
+                self.tick_periods.append(now - last)
+                last = now
+                if period:
+                    self._stop.wait(max(0.0, period - (now - start)))
+                elif not any(r.awaiting for r in self.robots.values()):
+                    time.sleep(0.001)
+        finally:
+            log.info("control loop stopped after %d ticks", self.ticks)
+
+    def _collect(self, robot: Robot) -> bool:
+        """Takes the worker's answer if there is one; returns True when the robot is ready."""
+        if robot.mode == "faulted":
+            if robot.restart_at is not None and time.monotonic() >= robot.restart_at:
+                robot.fault, robot.restart_at, robot.mode = None, None, "autonomous"
+                self._spawn(robot)
+            return False
+        if robot.process is None or not robot.process.is_alive():
+            self._fault(
+                robot, f"worker process exited (code {None if robot.process is None else robot.process.exitcode})"
+            )
+            return False
+        if robot.awaiting:
+            try:
+                if not robot.conn.poll():
+                    return False
+                status, payload = robot.conn.recv()
+            except (EOFError, OSError) as exc:
+                self._fault(robot, f"worker pipe broke: {exc}")
+                return False
+            robot.awaiting = False
+            if status != "ok":
+                self._fault(robot, str(payload))
+                return False
+            robot.frame = payload
+            obs = torch.as_tensor(payload["obs"])
+            if not robot.history:
+                robot.history.extend([obs] * robot.slot.policy.config.obs_horizon)
+            else:
+                robot.history.append(obs)
+            while len(robot.history) > robot.slot.policy.config.obs_horizon:
+                robot.history.popleft()
+            if payload["done"] and payload["t"] > 0:
+                self._end_episode(robot)
+                return False
+        return robot.frame is not None
+
+    def tick(self) -> None:
+        self.ticks += 1
+        for req in self.queue.expire():  # lease ran out: the robot holds, the request is queued again
+            robot = self.robots.get(req.robot_id)
+            if robot is not None and robot.mode == "teleop":
+                robot.mode, robot.command = "waiting", None
+                robot.hold_target = robot.frame["hold"].copy()
+        ready = [r for r in self.robots.values() if self._collect(r)]
+        auto = [r for r in ready if r.mode == "autonomous"]
+        by_slot: dict[int, list[Robot]] = {}
+        for r in auto:
+            by_slot.setdefault(r.slot.id, []).append(r)
+        for robots in by_slot.values():
+            self._autonomous(robots)
+        for r in ready:
+            if r.mode == "teleop":
+                self._teleop_step(r)
+            elif r.mode in ("waiting", "paused"):
+                self._send(r, r.hold_target if r.hold_target is not None else r.frame["hold"])
+
+    def _batch(self, robots: list[Robot]) -> tuple[torch.Tensor, torch.Tensor]:
+        obs = torch.stack([torch.stack(list(r.history)) for r in robots])
+        current = torch.as_tensor(np.stack([r.frame["hold"] for r in robots]), dtype=torch.float32)
+        return obs, current
+
+    def _autonomous(self, robots: list[Robot]) -> None:
+        slot = robots[0].slot
+        obs, current = self._batch(robots)
+        with torch.no_grad():
+            chunks = slot.policy.predict_action_chunk(obs)
+            scores = slot.signal.score(SignalInput(obs, current, np.array([r.id for r in robots]), action=chunks))
+        wants = scores.value > slot.threshold
+        for j, r in enumerate(robots):
+            self._remember(r, scores, j)
+            if wants[j]:
+                r.mode, r.hold_target = "waiting", r.frame["hold"].copy()
+                r.events += 1
+                self.queue.open(r.id, float(scores.value[j]), slot.threshold, "uncertainty above threshold")
+                self._send(r, r.hold_target)
+            else:
+                self._send(r, chunks[j, 0].numpy().astype(np.float64))
+
+    def _remember(self, robot: Robot, scores, j: int) -> None:
+        res = scores.detail.robot(j)
+        robot.u_history.append(res.U)
+        robot.last_result = {
+            "U": res.U,
+            "D": res.D,
+            "var_g": res.var_g,
+            "n": res.n,
+            "samples": res.samples,
+            "vectors": res.vectors,
+            "labels": res.labels,
+            "means": res.means,
+            "weights": res.weights,
+        }
+
+    def _teleop_step(self, robot: Robot) -> None:
+        if robot.command is None:
+            self._send(robot, robot.hold_target if robot.hold_target is not None else robot.frame["hold"])
+            return
+        cmd, received = robot.command
+        robot.command = None
+        target = robot.action_space.apply_teleop(cmd, robot.frame["pos"], robot.frame["rot"])
+        action = target.action
+        robot.hold_target = action.copy()
+        robot.latencies.append(time.monotonic() - received)
+        slot = robot.slot
+        obs, current = self._batch([robot])
+        with torch.no_grad():  # U in shadow during teleop: the segment records it, auto-return uses it
+            scores = slot.signal.score(SignalInput(obs, current, np.array([robot.id])))
+        self._remember(robot, scores, 0)
+        u = float(scores.value[0])
+        if robot.segment is not None:
+            label = slot.policy.normalize_action(torch.as_tensor(action, dtype=torch.float32)).numpy()
+            robot.segment.write_step(
+                robot.frame["obs"],
+                {
+                    "delta_pos": list(cmd.delta_pos),
+                    "delta_rot": list(cmd.delta_rot),
+                    "gripper": cmd.gripper,
+                    "clamped": list(target.clamped),
+                },
+                action,
+                label,
+                robot.frame["pos"],
+                robot.frame["quat"],
+                u,
+            )
+        robot.assisted_steps += 1
+        self._send(robot, action)
+        robot.below = robot.below + 1 if u <= slot.threshold else 0
+        if robot.teleop_left is not None:
+            robot.teleop_left -= 1
+        auto_k = self.settings.auto_return_steps
+        if (robot.teleop_left is not None and robot.teleop_left <= 0) or (auto_k and robot.below >= auto_k):
+            self._hand_back(robot)
+
+    def _send(self, robot: Robot, action: np.ndarray) -> None:
+        try:
+            robot.conn.send(("step", np.asarray(action, dtype=np.float64)))
+            robot.awaiting = True
+            robot.steps += 1
+        except (OSError, BrokenPipeError) as exc:
+            self._fault(robot, f"worker pipe broke: {exc}")
+
+    def _end_episode(self, robot: Robot) -> None:
+        frame = robot.frame
+        outcome = "success" if frame["success"] else "timeout"
+        self._close_segment(robot, "closed")
+        self.queue.close(robot.id)
+        robot.mode = "done" if robot.mode != "paused" else "paused"
+        robot.episodes_done += 1
+        robot.successes += int(frame["success"])
+        with self.sessions() as s:
+            row = s.get(EpisodeRecord, robot.episode_id)
+            if row is not None:
+                row.outcome, row.steps = outcome, int(frame["t"])
+                row.assisted_steps, row.assistance_events = robot.assisted_steps, robot.events
+                row.ended_at = datetime.now(UTC)
+                s.commit()
+        robot.frame = None
+        self._new_episode(robot)
+
+    # -- takeovers -----------------------------------------------------------------------------------------
+    def _open_segment(self, robot: Robot, operator: str, reason: str) -> None:
+        folder = Path(self.settings.data_dir) / "segments"
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%f")
+        path = folder / f"robot{robot.id:03d}_ep{robot.episode_id}_{stamp}.mcap"
+        meta = {
+            "robot": robot.id,
+            "episode": robot.episode_id,
+            "policy_version": robot.slot.id,
+            "policy": str(robot.slot.path),
+            "operator": operator,
+            "task": robot.task,
+            "reason": reason,
+            "seed": robot.seed,
+        }
+        robot.segment = SegmentWriter(path, meta)
+        with self.sessions() as s:
+            row = SegmentRecord(
+                robot_id=robot.id,
+                episode_id=robot.episode_id,
+                task=robot.task,
+                policy_id=robot.slot.id,
+                operator=operator,
+                reason=reason,
+                status="open",
+                path=str(path),
+                meta=meta,
+            )
+            s.add(row)
+            s.commit()
+            robot.segment_id = row.id
+
+    def _close_segment(self, robot: Robot, status: str) -> None:
+        if robot.segment is None:
+            return
+        writer, robot.segment = robot.segment, None
+        writer.close(status)
+        with self.sessions() as s:
+            row = s.get(SegmentRecord, robot.segment_id)
+            if row is not None:
+                row.status, row.steps, row.ended_at = status, writer.steps, datetime.now(UTC)
+                s.commit()
+        robot.segment_id = None
+
+    def _hand_back(self, robot: Robot) -> None:
+        """The policy restarts from the current pose with a fresh observation history."""
+        self._close_segment(robot, "closed")
+        req = self.queue.close(robot.id)
+        if req is not None and req.holder and req.claimed_at is not None:
+            self.operator_busy[req.holder] = self.operator_busy.get(req.holder, 0.0) + time.monotonic() - req.claimed_at
+        robot.mode, robot.teleop_left, robot.command, robot.below = "autonomous", None, None, 0
+        robot.hold_target = None
+        robot.history.clear()
+        if robot.frame is not None:
+            obs = torch.as_tensor(robot.frame["obs"])
+            robot.history.extend([obs] * robot.slot.policy.config.obs_horizon)
+
+    # -- service methods (the API calls these) ---------------------------------------------------------------
+    def robot(self, robot_id: int) -> Robot:
+        robot = self.robots.get(robot_id)
+        if robot is None:
+            raise FleetError(404, f"no robot {robot_id}")
+        return robot
+
+    def claim(self, robot_id: int, operator: str):
+        with self.lock:
+            robot = self.robot(robot_id)
+            req = self.queue.claim(robot_id, operator)
+            if robot.mode == "waiting":
+                robot.mode = "teleop"
+                robot.teleop_left = self.settings.budget_steps if self.settings.trigger_mode == "budgeted" else None
+                robot.command = None
+                if robot.segment is None:
+                    self._open_segment(robot, operator, req.reason)
+            return req
+
+    def heartbeat(self, robot_id: int, operator: str):
+        with self.lock:
+            self.robot(robot_id)
+            return self.queue.heartbeat(robot_id, operator)
+
+    def release(self, robot_id: int, operator: str) -> None:
+        with self.lock:
+            robot = self.robot(robot_id)
+            self.queue.check_holder(robot_id, operator)
+            self._hand_back(robot)
+
+    def command(self, robot_id: int, operator: str, command: TeleopCommand) -> None:
+        with self.lock:
+            robot = self.robot(robot_id)
+            self.queue.check_holder(robot_id, operator)
+            if robot.mode != "teleop":
+                raise QueueError(409, f"robot {robot_id} is {robot.mode}, not under teleop")
+            robot.command = (command, time.monotonic())
+
+    def pause(self, robot_id: int) -> None:
+        with self.lock:
+            robot = self.robot(robot_id)
+            if robot.mode in ("faulted",):
+                raise FleetError(409, f"robot {robot_id} is faulted")
+            if robot.mode != "paused":
+                robot.paused_from, robot.mode = robot.mode, "paused"
+                if robot.frame is not None:
+                    robot.hold_target = robot.frame["hold"].copy()
+
+    def resume(self, robot_id: int) -> None:
+        with self.lock:
+            robot = self.robot(robot_id)
+            if robot.mode != "paused":
+                raise FleetError(409, f"robot {robot_id} is {robot.mode}, not paused")
+            back = robot.paused_from if robot.paused_from in ("waiting", "teleop") else "autonomous"
+            robot.mode, robot.paused_from = back, None
+            if back == "autonomous":
+                robot.hold_target = None
+
+    def reset(self, robot_id: int) -> None:
+        with self.lock:
+            robot = self.robot(robot_id)
+            if robot.mode == "faulted":
+                raise FleetError(409, f"robot {robot_id} is faulted; it restarts by itself")
+            self._close_segment(robot, "closed")
+            self.queue.close(robot.id)
+            if robot.awaiting:  # the answer to the step in flight is dropped
+                with contextlib.suppress(EOFError, OSError):
+                    robot.conn.recv()
+            robot.frame, robot.mode = None, "autonomous"
+            self._new_episode(robot)
+
+    def metrics(self) -> dict:
+        with self.lock:
+            robots = list(self.robots.values())
+            waits = np.array(self.queue.waits) if self.queue.waits else np.zeros(0)
+            with self.sessions() as s:
+                rows = s.query(EpisodeRecord).filter(EpisodeRecord.outcome.isnot(None)).all()
+            n = len(rows)
+            success = sum(r.outcome == "success" for r in rows)
+            assisted = sum(r.assisted_steps for r in rows)
+            return {
+                "episodes": n,
+                "success_rate": success / n if n else None,
+                "assisted_steps_per_episode": assisted / n if n else None,
+                "assistance_events_per_episode": sum(r.assistance_events for r in rows) / n if n else None,
+                "queue_wait_p50_s": float(np.quantile(waits, 0.5)) if len(waits) else None,
+                "queue_wait_p95_s": float(np.quantile(waits, 0.95)) if len(waits) else None,
+                "operator_busy_s": dict(self.operator_busy),
+                "return_on_human_effort": success / assisted if assisted else None,
+                "robots_by_mode": {m: sum(r.mode == m for r in robots) for m in MODES},
+                "ticks": self.ticks,
+            }
+
+
+def finite(values) -> bool:
+    return all(math.isfinite(v) for v in values)

@@ -1,0 +1,76 @@
+"""Service settings: one pydantic-settings ``Settings``, from a TOML file and/or ``HITL_*`` variables.
+
+Environment variables win over the file (``HITL_PORT=9000``); ``DATABASE_URL`` (or
+``HITL_DATABASE_URL``) selects the database, default SQLite in WAL mode under ``data_dir``.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import AliasChoices, BaseModel, Field, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class RobotGroup(BaseModel):
+    """``count`` simulated robots on ``task`` driven by the policy folder ``policy``."""
+
+    task: str
+    count: int = Field(1, ge=1, le=64)
+    policy: Path | None = None
+
+    @field_validator("task")
+    @classmethod
+    def _known_task(cls, v: str) -> str:
+        from sim.registry import TASKS
+
+        if v not in TASKS:
+            raise ValueError(f"unknown task {v!r}; registered tasks: {', '.join(TASKS)}")
+        return v
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="HITL_", extra="forbid", populate_by_name=True)
+
+    data_dir: Path = Path("var")
+    database_url: str | None = Field(None, validation_alias=AliasChoices("HITL_DATABASE_URL", "DATABASE_URL"))
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    control_hz: float = Field(10.0, ge=0, le=200, description="0: free-running (benchmarks)")
+    robots: list[RobotGroup] = Field(default_factory=lambda: [RobotGroup(task="lift-cube", count=1)])
+    trigger_mode: Literal["budgeted", "continuous"] = "budgeted"
+    budget_steps: int = Field(4, ge=1, le=1000)
+    auto_return_steps: int | None = Field(None, ge=1, description="hand back after K steps of U under threshold")
+    lease_seconds: float = Field(10.0, gt=0, le=3600)
+    record_episodes: bool = False
+    max_body_bytes: int = Field(64 * 1024, ge=1024)
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _robots_present(self) -> Settings:
+        if not self.robots:
+            raise ValueError("robots: the fleet needs at least one robot group")
+        return self
+
+    @property
+    def db_url(self) -> str:
+        return self.database_url or f"sqlite:///{(self.data_dir / 'hitl.db').resolve()}"
+
+    @classmethod
+    def load(cls, path: str | Path | None = None, **overrides) -> Settings:
+        """Settings from ``path`` (TOML) with environment variables and ``overrides`` on top."""
+        values: dict = {}
+        if path is not None:
+            path = Path(path)
+            if not path.is_file():
+                raise FileNotFoundError(f"config file {path} not found")
+            try:
+                values = tomllib.loads(path.read_text())
+            except tomllib.TOMLDecodeError as exc:
+                raise ValueError(f"{path}: invalid TOML: {exc}") from exc
+        env = cls()  # environment only, to know which keys the environment sets
+        env_set = env.model_fields_set
+        merged = {**values, **{k: getattr(env, k) for k in env_set}, **overrides}
+        return cls(**merged)

@@ -1,0 +1,231 @@
+"""Takeover segments: one MCAP file per operator takeover, the fine-tuning data of the product.
+
+Per step (``/takeover/step``): the observation, the operator's command, the resulting absolute
+action and the same action in the policy's normalized action space (the fine-tune label), U and
+any shadow signal scores, and the end-effector pose. ``/tf`` carries the end effector and
+``/denoising/field`` the denoising vector field as a ``foxglove.SceneUpdate`` of arrows coloured
+by mode. The writer flushes at least once a second, so a crash loses at most the last second;
+``read_segment(path, recover=True)`` salvages a file left open by a crash.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.writer import CompressionType, Writer
+from scipy.spatial.transform import Rotation
+
+from storage import keys
+
+_COLOURS = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16), (0.58, 0.4, 0.74)]
+_OBJ = {"type": "object"}
+SCHEMAS = {
+    keys.SCHEMA_TAKEOVER: _OBJ,
+    keys.SCHEMA_TAKEOVER_STEP: _OBJ,
+    keys.SCHEMA_TAKEOVER_END: _OBJ,
+    keys.SCHEMA_FRAME_TRANSFORM: _OBJ,
+    keys.SCHEMA_SCENE_UPDATE: _OBJ,
+}
+
+
+class SegmentReadError(Exception):
+    def __init__(self, path: Path, reason: str) -> None:
+        super().__init__(f"{path}: {reason}")
+        self.path, self.reason = path, reason
+
+
+def _vec(v) -> list[float]:
+    return [float(x) for x in np.asarray(v, dtype=np.float64).ravel()]
+
+
+def _time(ns: int) -> dict:
+    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+
+
+def field_scene_update(ns: int, samples: np.ndarray, vectors: np.ndarray, labels: np.ndarray, scale: float) -> dict:
+    """foxglove.SceneUpdate with one arrow per probe sample (world frame), coloured by mode.
+
+    samples: (S, 3) positions (m); vectors: (S, 3) denoising vectors; scale: metres per unit vector.
+    """
+    arrows = []
+    for p, v, k in zip(samples, vectors, labels, strict=True):
+        n = float(np.linalg.norm(v))
+        if n < 1e-12:
+            continue
+        # an arrow points along its pose's +x axis
+        quat = Rotation.align_vectors([v / n], [[1.0, 0.0, 0.0]])[0].as_quat()
+        r, g, b = _COLOURS[int(k) % len(_COLOURS)]
+        arrows.append(
+            {
+                "pose": {
+                    "position": dict(zip("xyz", _vec(p), strict=True)),
+                    "orientation": dict(zip("xyzw", _vec(quat), strict=True)),
+                },
+                "shaft_length": n * scale * 0.8,
+                "shaft_diameter": 0.001,
+                "head_length": n * scale * 0.2,
+                "head_diameter": 0.003,
+                "color": {"r": r, "g": g, "b": b, "a": 1.0},
+            }
+        )
+    entity = {"timestamp": _time(ns), "frame_id": keys.WORLD_FRAME, "id": "denoising_field", "lifetime": _time(0)}
+    return {"deletions": [], "entities": [entity | {"frame_locked": False, "arrows": arrows}]}
+
+
+class SegmentWriter:
+    """Writes one takeover; ``close(status)`` ends it. Flushes at least every ``flush_seconds``."""
+
+    def __init__(self, path: str | Path, meta: dict, flush_seconds: float = 1.0) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD, chunk_size=64 * 1024)
+        self._writer.start(profile=keys.MCAP_PROFILE, library="hitl")
+        ids = {n: self._writer.register_schema(n, "jsonschema", json.dumps(s).encode()) for n, s in SCHEMAS.items()}
+        ch = self._writer.register_channel
+        self._ch = {
+            "meta": ch(keys.TOPIC_TAKEOVER, "json", ids[keys.SCHEMA_TAKEOVER]),
+            "step": ch(keys.TOPIC_TAKEOVER_STEP, "json", ids[keys.SCHEMA_TAKEOVER_STEP]),
+            "end": ch(keys.TOPIC_TAKEOVER_END, "json", ids[keys.SCHEMA_TAKEOVER_END]),
+            "tf": ch(keys.TOPIC_TF, "json", ids[keys.SCHEMA_FRAME_TRANSFORM]),
+            "field": ch(keys.TOPIC_FIELD, "json", ids[keys.SCHEMA_SCENE_UPDATE]),
+        }
+        self.meta = dict(meta)
+        self.steps = 0
+        self._seq = 0
+        self._flush_seconds = flush_seconds
+        self._last_flush = time.monotonic()
+        self._closed = False
+        self._writer.add_metadata("takeover", {k: json.dumps(v) for k, v in self.meta.items()})
+        self._add("meta", time.time_ns(), self.meta)
+        self.flush()
+
+    def _add(self, channel: str, ns: int, payload: dict) -> None:
+        self._writer.add_message(
+            self._ch[channel], log_time=ns, publish_time=ns, sequence=self._seq, data=json.dumps(payload).encode()
+        )
+        self._seq += 1
+
+    def write_step(
+        self,
+        obs: np.ndarray,
+        command: dict,
+        action: np.ndarray,
+        action_normalized: np.ndarray,
+        pos: np.ndarray,
+        quat: np.ndarray,
+        uncertainty: float | None,
+        shadow: dict[str, float] | None = None,
+        field: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None,
+    ) -> None:
+        """field: (samples (S, 3) m, vectors (S, 3), labels (S,), arrow scale) for the scene update."""
+        ns = time.time_ns()
+        self._add(
+            "step",
+            ns,
+            {
+                "t": self.steps,
+                keys.OBS: _vec(obs),
+                "command": command,
+                keys.ACTION: _vec(action),
+                "action_normalized": _vec(action_normalized),
+                "uncertainty": None if uncertainty is None else float(uncertainty),
+                "shadow": {k: float(v) for k, v in (shadow or {}).items()},
+                "position": _vec(pos),
+                "quaternion": _vec(quat),
+            },
+        )
+        self._add(
+            "tf",
+            ns,
+            {
+                "timestamp": _time(ns),
+                "parent_frame_id": keys.WORLD_FRAME,
+                "child_frame_id": keys.EE_FRAME,
+                "translation": dict(zip("xyz", _vec(pos), strict=True)),
+                "rotation": dict(zip("xyzw", _vec(quat), strict=True)),
+            },
+        )
+        if field is not None:
+            self._add("field", ns, field_scene_update(ns, *field))
+        self.steps += 1
+        if time.monotonic() - self._last_flush >= self._flush_seconds:
+            self.flush()
+
+    def flush(self) -> None:
+        self._writer.flush()
+        self._file.flush()
+        self._last_flush = time.monotonic()
+
+    def close(self, status: str = "closed") -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._add("end", time.time_ns(), {"status": status, "steps": self.steps})
+            self._writer.finish()
+        finally:
+            self._file.close()
+
+
+@dataclass
+class Segment:
+    path: Path
+    meta: dict
+    steps: list[dict] = field(default_factory=list)
+    end: dict | None = None
+    recovered: bool = False
+
+    def labels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(obs (T, obs_dim), normalized action labels (T, 10)) for fine-tuning."""
+        return (
+            np.array([s[keys.OBS] for s in self.steps], dtype=np.float32),
+            np.array([s["action_normalized"] for s in self.steps], dtype=np.float32),
+        )
+
+
+def _collect(path: Path, messages, recovered: bool) -> Segment:
+    seg = Segment(path, {}, recovered=recovered)
+    for _schema, channel, message in messages:
+        doc = json.loads(message.data)
+        if channel.topic == keys.TOPIC_TAKEOVER:
+            seg.meta = doc
+        elif channel.topic == keys.TOPIC_TAKEOVER_STEP:
+            seg.steps.append(doc)
+        elif channel.topic == keys.TOPIC_TAKEOVER_END:
+            seg.end = doc
+    if not seg.meta:
+        raise SegmentReadError(path, "no /takeover message: not a takeover segment")
+    return seg
+
+
+def read_segment(path: str | Path, recover: bool = False) -> Segment:
+    """Reads a segment; ``recover`` salvages what was flushed from a file left open by a crash."""
+    path = Path(path)
+    if not path.is_file():
+        raise SegmentReadError(path, "no such file")
+    try:
+        with open(path, "rb") as f:
+            return _collect(path, list(make_reader(f, validate_crcs=True).iter_messages(log_time_order=False)), False)
+    except SegmentReadError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - mcap raises several types for broken files
+        if not recover:
+            raise SegmentReadError(
+                path, f"truncated or corrupt ({type(exc).__name__}: {exc}); use recover=True"
+            ) from exc
+    out = []
+    with open(path, "rb") as f:
+        try:
+            for item in NonSeekingReader(f, validate_crcs=True).iter_messages(log_time_order=False):
+                out.append(item)
+        except Exception:  # noqa: BLE001, S110 - the truncation point
+            pass
+    if not out:
+        raise SegmentReadError(path, "nothing recoverable")
+    return _collect(path, out, True)

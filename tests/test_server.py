@@ -1,0 +1,229 @@
+"""The fleet service on a real uvicorn server on 127.0.0.1, with a small fleet and tiny policies."""
+
+import json
+import math
+import socket
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+import torch
+import uvicorn
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+
+from policy.checkpoint import save_calibration, save_policy
+from policy.config import DiffusionPolicyConfig
+from policy.diffusion_policy import DiffusionPolicy
+from server.app import create_app
+from server.auth import create_token
+from server.db import make_engine, migrate, session_factory
+from server.settings import RobotGroup, Settings
+from sim.registry import make_task
+from storage.segments import read_segment
+
+
+def _tiny_policy(folder, task, threshold):
+    torch.manual_seed(0)
+    obs_dim = make_task(task).obs_spec.dim
+    p = DiffusionPolicy(
+        DiffusionPolicyConfig(obs_dim=obs_dim, network="mlp", mlp_hidden=16, step_embed_dim=8, num_inference_steps=2)
+    )
+    rng = np.random.default_rng(0)
+    acts = np.concatenate(
+        [rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0], (64, 3)), np.tile([0, 1, 0, 1, 0, 0, -1], (64, 1))], 1
+    )
+    p.fit_normalizers(rng.normal(size=(64, obs_dim)), acts)
+    save_policy(p, folder, {"task": task})
+    save_calibration(folder, {"threshold": threshold, "quantile": 0.95, "samples": 0})
+    return folder
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Service:
+    def __init__(self, settings):
+        self.settings = settings
+        self.url = f"http://127.0.0.1:{settings.port}"
+        self.server = uvicorn.Server(
+            uvicorn.Config(create_app(settings), host="127.0.0.1", port=settings.port, log_level="warning")
+        )
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+
+    def __enter__(self):
+        self.thread.start()
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            try:
+                if httpx.get(self.url + "/readyz").status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError("service did not become ready")
+
+    def __exit__(self, *exc):
+        self.server.should_exit = True
+        self.thread.join(timeout=60)
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    root = tmp_path_factory.mktemp("svc")
+    policy = _tiny_policy(root / "policy", "lift-cube", threshold=-1.0)  # every robot asks at once
+    settings = Settings(
+        data_dir=root / "var",
+        port=_free_port(),
+        robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
+        lease_seconds=1.5,
+        budget_steps=3,
+        control_hz=20,
+    )
+    migrate(settings.db_url)
+    sessions = session_factory(make_engine(settings.db_url))
+    tokens = {role: create_token(sessions, f"{role}-1", role) for role in ("viewer", "operator", "admin")}
+    tokens["operator2"] = create_token(sessions, "operator-2", "operator")
+    with Service(settings) as svc:
+        svc.tokens = tokens
+        yield svc
+
+
+def _h(svc, who):
+    return {"Authorization": f"Bearer {svc.tokens[who]}"}
+
+
+def _wait(fn, timeout=30.0):
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        value = fn()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError("condition not met in time")
+
+
+def _robot(svc, rid):
+    return httpx.get(f"{svc.url}/api/v1/robots/{rid}", headers=_h(svc, "viewer")).json()
+
+
+def test_auth_needs_a_token_and_the_right_role(service):
+    api = service.url + "/api/v1"
+    assert httpx.get(service.url + "/healthz").status_code == 200
+    assert httpx.get(api + "/robots").status_code == 401
+    assert httpx.get(api + "/robots", headers={"Authorization": "Bearer nope"}).status_code == 401
+    assert httpx.get(api + "/robots", headers=_h(service, "viewer")).status_code == 200
+    assert httpx.post(api + "/robots/0/claim", headers=_h(service, "viewer")).status_code == 403
+    assert httpx.post(api + "/robots/0/pause", headers=_h(service, "operator")).status_code == 403
+    ws = service.url.replace("http", "ws") + "/api/v1/robots/0/teleop"
+    for headers in ({}, {"Authorization": "Bearer nope"}):
+        with pytest.raises(InvalidStatus) as denied:
+            connect(ws, additional_headers=headers)
+        assert denied.value.response.status_code == 401
+    with connect(ws, additional_headers=_h(service, "viewer")) as conn:
+        assert "state" in json.loads(conn.recv(timeout=10))
+        conn.send('{"delta_pos": [0, 0, 0.01], "gripper": -1}')
+        replies = [json.loads(conn.recv(timeout=10)) for _ in range(5)]
+        assert any(r.get("status") == 403 for r in replies)
+
+
+def test_takeover_round_trip_records_a_segment(service):
+    api, op = service.url + "/api/v1", _h(service, "operator")
+    _wait(lambda: _robot(service, 0)["mode"] == "waiting")
+    queue = httpx.get(api + "/assistance", headers=_h(service, "viewer")).json()
+    assert any(r["robot_id"] == 0 for r in queue)
+    before = _robot(service, 0)
+    claim = httpx.post(api + "/robots/0/claim", headers=op)
+    assert claim.status_code == 200, claim.text
+    assert _robot(service, 0)["mode"] == "teleop"
+    # a second claimant and a non-holder's command get 409 and change nothing
+    assert httpx.post(api + "/robots/0/claim", headers=_h(service, "operator2")).status_code == 409
+    cmd = {"delta_pos": [0.0, 0.0, 0.01], "delta_rot": [0, 0, 0], "gripper": -1.0}
+    assert httpx.post(api + "/robots/0/command", json=cmd, headers=_h(service, "operator2")).status_code == 409
+    # bad commands: 422 with a message, nothing changes
+    for bad, msg in (
+        ({"delta_pos": [math.nan, 0, 0], "gripper": -1}, "NaN"),
+        ({"delta_pos": [0.5, 0, 0], "gripper": -1}, "above the limit"),
+        ({"delta_pos": [0, 0], "gripper": -1}, "3 components"),
+        ({"delta_pos": [0, 0, 0], "gripper": 3}, "less than or equal"),
+    ):
+        r = httpx.post(
+            api + "/robots/0/command",
+            content=json.dumps(bad),
+            headers=op | {"content-type": "application/json"},
+        )
+        assert r.status_code == 422 and msg in r.text, r.text
+    assert httpx.post(api + "/robots/99/command", json=cmd, headers=op).status_code == 404
+    assert _robot(service, 0)["mode"] == "teleop"
+    start = _robot(service, 0)
+    z0 = start["pose"]["position"][2]
+    for _ in range(3):  # the budget: 3 operator steps, then the policy is back
+        assert httpx.post(api + "/robots/0/command", json=cmd, headers=op).status_code == 200
+        time.sleep(0.15)
+    _wait(lambda: _robot(service, 0)["assisted_steps"] >= 3)
+    seg = _wait(
+        lambda: [
+            s
+            for s in httpx.get(api + "/segments?robot_id=0", headers=_h(service, "viewer")).json()
+            if s["status"] == "closed"
+        ]
+    )[0]
+    assert seg["steps"] == 3 and seg["operator"] == "operator-1"
+    data = httpx.get(f"{api}/segments/{seg['id']}/mcap", headers=_h(service, "viewer"))
+    assert data.status_code == 200
+    path = service.settings.data_dir / "downloaded.mcap"
+    path.write_bytes(data.content)
+    segment = read_segment(path)
+    obs, labels = segment.labels()
+    assert obs.shape[0] == labels.shape[0] == 3 and np.isfinite(labels).all()
+    assert segment.meta["robot"] == 0 and segment.end["status"] == "closed"
+    assert [s["command"]["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
+    assert before["episode_id"] == start["episode_id"]
+    assert z0 is not None
+
+
+def test_an_expired_lease_requeues_the_request(service):
+    api, op = service.url + "/api/v1", _h(service, "operator")
+    _wait(lambda: _robot(service, 1)["mode"] == "waiting")
+    assert httpx.post(api + "/robots/1/claim", headers=op).status_code == 200
+    assert _robot(service, 1)["mode"] == "teleop"
+    _wait(lambda: _robot(service, 1)["mode"] == "waiting", timeout=10)  # no heartbeat for 1.5 s
+    req = [r for r in httpx.get(api + "/assistance", headers=_h(service, "viewer")).json() if r["robot_id"] == 1][0]
+    assert req["holder"] is None
+    # now anyone may claim it
+    assert httpx.post(api + "/robots/1/claim", headers=_h(service, "operator2")).status_code == 200
+    assert httpx.post(api + "/robots/1/release", headers=_h(service, "operator2")).status_code == 200
+
+
+def test_the_operator_bot_completes_takeovers_through_the_api(service):
+    from server.operator_bot import OperatorBot
+
+    migrate(service.settings.db_url)
+    token = create_token(session_factory(make_engine(service.settings.db_url)), "bot", "operator")
+    bot = OperatorBot(service.url, token)
+    try:
+        bot.run(max_takeovers=2)
+    finally:
+        bot.close()
+    assert bot.takeovers == 2 and bot.commands >= 2
+    api = service.url + "/api/v1"
+    segs = _wait(
+        lambda: [
+            s
+            for s in httpx.get(api + "/segments?operator=bot", headers=_h(service, "viewer")).json()
+            if s["status"] == "closed"
+        ]
+    )
+    assert segs and all(s["steps"] >= 1 for s in segs)
+    data = httpx.get(f"{api}/segments/{segs[0]['id']}/mcap", headers=_h(service, "viewer")).content
+    path = service.settings.data_dir / "bot-segment.mcap"
+    path.write_bytes(data)
+    segment = read_segment(path)
+    assert segment.meta["operator"] == "bot" and len(segment.steps) == segs[0]["steps"]
+    metrics = httpx.get(api + "/metrics/fleet", headers=_h(service, "viewer")).json()
+    assert metrics["queue_wait_p50_s"] is not None and "bot" in metrics["operator_busy_s"]
