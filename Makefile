@@ -17,9 +17,12 @@ $(STAMP): pyproject.toml | $(BIN)/python
 
 install: $(STAMP)
 
+# The fleet service with 6 simulated robots on the bundled policies; prints the API docs URL and a
+# fresh operator token. In another shell: .venv/bin/hitl operator-bot --url http://127.0.0.1:8000 --token TOKEN
 demo: install
-	$(BIN)/hitl demos --task lift-cube --episodes 3 --out data/demos/demo-lift-cube --seed 0
-	$(BIN)/hitl demos --task open-drawer --episodes 3 --out data/demos/demo-open-drawer --seed 0
+	@$(BIN)/hitl token create --config configs/demo.toml --role operator --name operator-$$(date +%Y%m%d%H%M%S) \
+		| sed 's/^/hitl: operator token (shown once): /'
+	$(BIN)/hitl serve --config configs/demo.toml
 
 test: install
 	$(BIN)/python -m pytest -q

@@ -49,6 +49,7 @@ def _cmd_operator_bot(args: argparse.Namespace) -> int:
     from server.operator_bot import OperatorBot
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request is noise
     bot = OperatorBot(args.url, args.token)
     try:
         bot.run(max_takeovers=args.takeovers)

@@ -143,9 +143,7 @@ class Fleet:
     def _build(self) -> None:
         rid = 0
         for group in self.settings.robots:
-            if group.policy is None:
-                raise FleetError(500, f"robot group {group.task}: no policy folder given")
-            slot = self._slot(Path(group.policy), group.task)
+            slot = self._slot(group.policy_dir, group.task)
             for _ in range(group.count):
                 task = make_task(group.task)  # its action space; the simulator lives in the worker
                 self.robots[rid] = Robot(rid, group.task, slot, task.action_space, self.settings.seed + 1000 * rid)
@@ -275,6 +273,9 @@ class Fleet:
             if robot is not None and robot.mode == "teleop":
                 robot.mode, robot.command = "waiting", None
                 robot.hold_target = robot.frame["hold"].copy()
+        for r in self.robots.values():  # nothing older than a second is only in memory
+            if r.segment is not None:
+                r.segment.maybe_flush()
         ready = [r for r in self.robots.values() if self._collect(r)]
         auto = [r for r in ready if r.mode == "autonomous"]
         by_slot: dict[int, list[Robot]] = {}

@@ -13,13 +13,24 @@ from typing import Literal
 from pydantic import AliasChoices, BaseModel, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+BUNDLED = Path(__file__).resolve().parents[1] / "policies"
+
+
+def bundled_policy(task: str) -> Path:
+    """The bundled checkpoint for a task: lift tasks share the lift-cube policy."""
+    return BUNDLED / ("lift-cube" if task.startswith("lift") else task)
+
 
 class RobotGroup(BaseModel):
-    """``count`` simulated robots on ``task`` driven by the policy folder ``policy``."""
+    """``count`` simulated robots on ``task`` driven by the policy folder ``policy`` (default: bundled)."""
 
     task: str
     count: int = Field(1, ge=1, le=64)
     policy: Path | None = None
+
+    @property
+    def policy_dir(self) -> Path:
+        return self.policy if self.policy is not None else bundled_policy(self.task)
 
     @field_validator("task")
     @classmethod

@@ -101,6 +101,7 @@ class SegmentWriter:
         self._flush_seconds = flush_seconds
         self._last_flush = time.monotonic()
         self._closed = False
+        self._dirty = False
         self._writer.add_metadata("takeover", {k: json.dumps(v) for k, v in self.meta.items()})
         self._add("meta", time.time_ns(), self.meta)
         self.flush()
@@ -154,13 +155,19 @@ class SegmentWriter:
         if field is not None:
             self._add("field", ns, field_scene_update(ns, *field))
         self.steps += 1
-        if time.monotonic() - self._last_flush >= self._flush_seconds:
+        self._dirty = True
+        self.maybe_flush()
+
+    def maybe_flush(self) -> None:
+        """Flushes unwritten steps older than ``flush_seconds``; call it periodically (the control loop does)."""
+        if self._dirty and time.monotonic() - self._last_flush >= self._flush_seconds:
             self.flush()
 
     def flush(self) -> None:
         self._writer.flush()
         self._file.flush()
         self._last_flush = time.monotonic()
+        self._dirty = False
 
     def close(self, status: str = "closed") -> None:
         if self._closed:
