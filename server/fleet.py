@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import multiprocessing as mp
 import threading
 import time
@@ -344,6 +343,7 @@ class Fleet:
         u = float(scores.value[0])
         if robot.segment is not None:
             label = slot.policy.normalize_action(torch.as_tensor(action, dtype=torch.float32)).numpy()
+            field = _world_field(slot, scores.detail.robot(0))
             robot.segment.write_step(
                 robot.frame["obs"],
                 {
@@ -357,6 +357,7 @@ class Fleet:
                 robot.frame["pos"],
                 robot.frame["quat"],
                 u,
+                field=field,
             )
         robot.assisted_steps += 1
         self._send(robot, action)
@@ -544,5 +545,12 @@ class Fleet:
             }
 
 
-def finite(values) -> bool:
-    return all(math.isfinite(v) for v in values)
+def _world_field(slot: PolicySlot, result) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The probe samples in metres (world frame) and the denoising directions (-ε, rescaled per axis
+    from the normalized action space), for the segment's arrows; the longest arrow is 2 cm."""
+    norm = slot.policy.action_normalizer
+    low, span = norm.low[:3].numpy().astype(np.float64), norm.span[:3].numpy().astype(np.float64)
+    samples = result.samples * span + low
+    vectors = -result.vectors * span
+    longest = float(np.linalg.norm(vectors, axis=1).max()) if len(vectors) else 0.0
+    return samples, vectors, result.labels, 0.02 / longest if longest > 0 else 0.0

@@ -187,6 +187,7 @@ class Segment:
     steps: list[dict] = field(default_factory=list)
     end: dict | None = None
     recovered: bool = False
+    fields: list[dict] = field(default_factory=list)  # foxglove.SceneUpdate per step
 
     def labels(self) -> tuple[np.ndarray, np.ndarray]:
         """(obs (T, obs_dim), normalized action labels (T, 10)) for fine-tuning."""
@@ -206,6 +207,8 @@ def _collect(path: Path, messages, recovered: bool) -> Segment:
             seg.steps.append(doc)
         elif channel.topic == keys.TOPIC_TAKEOVER_END:
             seg.end = doc
+        elif channel.topic == keys.TOPIC_FIELD:
+            seg.fields.append(doc)
     if not seg.meta:
         raise SegmentReadError(path, "no /takeover message: not a takeover segment")
     return seg

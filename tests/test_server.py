@@ -183,6 +183,8 @@ def test_takeover_round_trip_records_a_segment(service):
     assert obs.shape[0] == labels.shape[0] == 3 and np.isfinite(labels).all()
     assert segment.meta["robot"] == 0 and segment.end["status"] == "closed"
     assert [s["command"]["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
+    fields = segment.fields
+    assert len(fields) == 3 and len(fields[0]["entities"][0]["arrows"]) > 0  # the vector field, for Foxglove
     assert before["episode_id"] == start["episode_id"]
     assert z0 is not None
 
