@@ -149,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = policy_commands.register(sub)
     signal_commands.register(sub, bench)
-    server_commands.register(sub)
+    server_commands.register(sub, bench)
     return parser
 
 

@@ -61,7 +61,20 @@ def _cmd_operator_bot(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def _cmd_bench_fleet(args: argparse.Namespace) -> int:
+    import json
+
+    from server.bench import bench_fleet
+
+    sizes = [int(x) for x in args.robots.split(",") if x.strip()]
+    if not sizes or any(n < 1 or n > 64 for n in sizes):
+        raise ValueError(f"--robots must be a comma-separated list of sizes in 1..64, got {args.robots!r}")
+    result = bench_fleet(args.task, sizes, args.seconds, progress=not args.quiet)
+    print(json.dumps(result, indent=None if args.json else 2))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
     from server.auth import ROLES
 
     p = sub.add_parser("serve", help="run the fleet service (REST API, assistance queue, simulated fleet)")
@@ -75,6 +88,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--token", required=True, help="an operator token")
     p.add_argument("--takeovers", type=int, default=None, help="stop after this many takeovers")
     p.set_defaults(func=_cmd_operator_bot)
+
+    q = bench.add_parser("fleet", help="fleet throughput against raw physics; command latency")
+    q.add_argument("--robots", default="1,4,8,16")
+    q.add_argument("--task", default="lift-cube")
+    q.add_argument("--seconds", type=float, default=10.0)
+    q.add_argument("--json", action="store_true")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_fleet)
 
     p = sub.add_parser("token", help="create or revoke API tokens")
     p.add_argument("action", choices=["create", "revoke"])

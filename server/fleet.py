@@ -20,6 +20,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from multiprocessing.connection import wait
 from pathlib import Path
 
 import numpy as np
@@ -213,18 +214,23 @@ class Fleet:
         try:
             while not self._stop.is_set():
                 start = time.monotonic()
+                if not period:  # free-running: block until some worker answers, never spin
+                    with self.lock:
+                        pending = [r.conn for r in self.robots.values() if r.awaiting and r.conn is not None]
+                    if pending:
+                        wait(pending, timeout=0.05)
                 try:
                     with self.lock:
-                        self.tick()
+                        worked = self.tick()
                 except Exception:  # a bug in one tick must not stop the fleet
                     log.exception("control tick failed")
+                    worked = False
                 now = time.monotonic()
-                self.tick_periods.append(now - last)
-                last = now
+                if worked:
+                    self.tick_periods.append(now - last)
+                    last = now
                 if period:
                     self._stop.wait(max(0.0, period - (now - start)))
-                elif not any(r.awaiting for r in self.robots.values()):
-                    time.sleep(0.001)
         finally:
             log.info("control loop stopped after %d ticks", self.ticks)
 
@@ -265,8 +271,8 @@ class Fleet:
                 return False
         return robot.frame is not None
 
-    def tick(self) -> None:
-        self.ticks += 1
+    def tick(self) -> bool:
+        """One control tick; returns whether any robot was ready (only those ticks are counted)."""
         for req in self.queue.expire():  # lease ran out: the robot holds, the request is queued again
             robot = self.robots.get(req.robot_id)
             if robot is not None and robot.mode == "teleop":
@@ -276,17 +282,17 @@ class Fleet:
             if r.segment is not None:
                 r.segment.maybe_flush()
         ready = [r for r in self.robots.values() if self._collect(r)]
-        auto = [r for r in ready if r.mode == "autonomous"]
-        by_slot: dict[int, list[Robot]] = {}
-        for r in auto:
-            by_slot.setdefault(r.slot.id, []).append(r)
-        for robots in by_slot.values():
+        if not ready:
+            return False
+        self.ticks += 1
+        for robots in _by_slot(r for r in ready if r.mode == "autonomous").values():
             self._autonomous(robots)
+        for robots in _by_slot(r for r in ready if r.mode == "teleop" and r.command is not None).values():
+            self._teleop(robots)
         for r in ready:
-            if r.mode == "teleop":
-                self._teleop_step(r)
-            elif r.mode in ("waiting", "paused"):
+            if not r.awaiting and r.mode in ("waiting", "paused", "teleop"):  # hold the pose
                 self._send(r, r.hold_target if r.hold_target is not None else r.frame["hold"])
+        return True
 
     def _batch(self, robots: list[Robot]) -> tuple[torch.Tensor, torch.Tensor]:
         obs = torch.stack([torch.stack(list(r.history)) for r in robots])
@@ -325,25 +331,26 @@ class Fleet:
             "weights": res.weights,
         }
 
-    def _teleop_step(self, robot: Robot) -> None:
-        if robot.command is None:
-            self._send(robot, robot.hold_target if robot.hold_target is not None else robot.frame["hold"])
-            return
+    def _teleop(self, robots: list[Robot]) -> None:
+        """Applies each robot's pending command; U in shadow (batched) for the segment and auto-return."""
+        slot = robots[0].slot
+        obs, current = self._batch(robots)
+        with torch.no_grad():
+            scores = slot.signal.score(SignalInput(obs, current, np.array([r.id for r in robots])))
+        for j, robot in enumerate(robots):
+            self._apply_command(robot, scores, j)
+
+    def _apply_command(self, robot: Robot, scores, j: int) -> None:
         cmd, received = robot.command
         robot.command = None
+        slot = robot.slot
         target = robot.action_space.apply_teleop(cmd, robot.frame["pos"], robot.frame["rot"])
         action = target.action
         robot.hold_target = action.copy()
-        robot.latencies.append(time.monotonic() - received)
-        slot = robot.slot
-        obs, current = self._batch([robot])
-        with torch.no_grad():  # U in shadow during teleop: the segment records it, auto-return uses it
-            scores = slot.signal.score(SignalInput(obs, current, np.array([robot.id])))
-        self._remember(robot, scores, 0)
-        u = float(scores.value[0])
+        self._remember(robot, scores, j)
+        u = float(scores.value[j])
         if robot.segment is not None:
             label = slot.policy.normalize_action(torch.as_tensor(action, dtype=torch.float32)).numpy()
-            field = _world_field(slot, scores.detail.robot(0))
             robot.segment.write_step(
                 robot.frame["obs"],
                 {
@@ -357,10 +364,11 @@ class Fleet:
                 robot.frame["pos"],
                 robot.frame["quat"],
                 u,
-                field=field,
+                field=_world_field(slot, scores.detail.robot(j)),
             )
         robot.assisted_steps += 1
         self._send(robot, action)
+        robot.latencies.append(time.monotonic() - received)
         robot.below = robot.below + 1 if u <= slot.threshold else 0
         if robot.teleop_left is not None:
             robot.teleop_left -= 1
@@ -543,6 +551,13 @@ class Fleet:
                 "robots_by_mode": {m: sum(r.mode == m for r in robots) for m in MODES},
                 "ticks": self.ticks,
             }
+
+
+def _by_slot(robots) -> dict[int, list[Robot]]:
+    out: dict[int, list[Robot]] = {}
+    for r in robots:
+        out.setdefault(r.slot.id, []).append(r)
+    return out
 
 
 def _world_field(slot: PolicySlot, result) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:

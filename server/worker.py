@@ -16,11 +16,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 
-def _frame(task, t: int, success: bool, done: bool) -> dict:
+def _frame(task, t: int, success: bool, done: bool, obs: np.ndarray | None = None) -> dict:
     pos, rot = task.ee_pose()
     privileged = task.privileged() or {}
     return {
-        "obs": task.observe().astype(np.float32),
+        "obs": (task.observe() if obs is None else obs).astype(np.float32),
         "hold": task.hold_action().astype(np.float64),
         "pos": pos,
         "rot": rot,
@@ -62,7 +62,7 @@ def worker_main(conn: Connection, task_name: str) -> None:
                     conn.send(("ok", _frame(task, 0, False, False)))
                 elif cmd == "step":
                     r = task.step(np.asarray(arg, dtype=np.float64))
-                    conn.send(("ok", _frame(task, r.t, r.success, r.done)))
+                    conn.send(("ok", _frame(task, r.t, r.success, r.done, r.obs)))
                 elif cmd == "close":
                     return
                 else:

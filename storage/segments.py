@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import NonSeekingReader, make_reader
 from mcap.writer import CompressionType, Writer
-from scipy.spatial.transform import Rotation
 
 from storage import keys
 
@@ -52,23 +51,27 @@ def field_scene_update(ns: int, samples: np.ndarray, vectors: np.ndarray, labels
 
     samples: (S, 3) positions (m); vectors: (S, 3) denoising vectors; scale: metres per unit vector.
     """
+    samples, vectors = np.asarray(samples, np.float64), np.asarray(vectors, np.float64)
+    norms = np.linalg.norm(vectors, axis=1)
+    keep = norms > 1e-12
+    unit = vectors[keep] / norms[keep, None]
+    # an arrow points along its pose's +x axis: the quaternion turning +x onto v is (x × v, 1 + x·v), normalized
+    quat = np.stack([np.zeros(len(unit)), -unit[:, 2], unit[:, 1], 1.0 + unit[:, 0]], axis=1)
+    opposite = quat[:, 3] < 1e-9
+    quat[opposite] = [0.0, 0.0, 1.0, 0.0]  # v = -x: half a turn about z
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
     arrows = []
-    for p, v, k in zip(samples, vectors, labels, strict=True):
-        n = float(np.linalg.norm(v))
-        if n < 1e-12:
-            continue
-        # an arrow points along its pose's +x axis
-        quat = Rotation.align_vectors([v / n], [[1.0, 0.0, 0.0]])[0].as_quat()
+    for p, n, q, k in zip(samples[keep], norms[keep], quat, np.asarray(labels)[keep], strict=True):
         r, g, b = _COLOURS[int(k) % len(_COLOURS)]
         arrows.append(
             {
                 "pose": {
                     "position": dict(zip("xyz", _vec(p), strict=True)),
-                    "orientation": dict(zip("xyzw", _vec(quat), strict=True)),
+                    "orientation": dict(zip("xyzw", _vec(q), strict=True)),
                 },
-                "shaft_length": n * scale * 0.8,
+                "shaft_length": float(n) * scale * 0.8,
                 "shaft_diameter": 0.001,
-                "head_length": n * scale * 0.2,
+                "head_length": float(n) * scale * 0.2,
                 "head_diameter": 0.003,
                 "color": {"r": r, "g": g, "b": b, "a": 1.0},
             }

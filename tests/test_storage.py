@@ -167,3 +167,19 @@ def test_recorded_demos_are_readable_training_data(tmp_path):
     train = ds.arrays("train")
     assert train[keys.OBS].shape[1:] == (2, 23) and train[keys.ACTION].shape[1:] == (8, 10)
     shutil.rmtree(out)
+
+
+def test_field_arrows_point_along_the_vectors():
+    from scipy.spatial.transform import Rotation
+
+    from storage.segments import field_scene_update
+
+    vectors = np.array([[1.0, 0, 0], [0, 2.0, 0], [-1.0, 0, 0], [0.3, -0.4, 0.5], [0, 0, 0]])
+    update = field_scene_update(0, np.zeros((5, 3)), vectors, np.array([0, 1, 0, 1, 0]), scale=0.01)
+    arrows = update["entities"][0]["arrows"]
+    assert len(arrows) == 4  # the zero vector has no direction
+    for arrow, v in zip(arrows, vectors[:4], strict=True):
+        q = arrow["pose"]["orientation"]
+        x_axis = Rotation.from_quat([q["x"], q["y"], q["z"], q["w"]]).apply([1.0, 0, 0])
+        np.testing.assert_allclose(x_axis, v / np.linalg.norm(v), atol=1e-9)
+        assert arrow["shaft_length"] + arrow["head_length"] == pytest.approx(np.linalg.norm(v) * 0.01)
