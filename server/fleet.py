@@ -36,6 +36,8 @@ from server.settings import Settings
 from server.worker import worker_main
 from sim.registry import make_task
 from sim.spaces import TeleopCommand
+from storage import keys
+from storage.episodes import EpisodeWriter
 from storage.segments import SegmentWriter
 
 log = logging.getLogger("hitl.fleet")
@@ -93,6 +95,8 @@ class Robot:
     fault: str | None = None
     paused_from: str | None = None
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
+    recorder: EpisodeWriter | None = None  # whole-episode recording (settings.record_episodes)
+    pending_step: tuple | None = None  # the step sent, written once its outcome arrives
 
 
 class Fleet:
@@ -175,6 +179,7 @@ class Fleet:
     def _fault(self, robot: Robot, why: str) -> None:
         log.warning("robot %d faulted: %s", robot.id, why.splitlines()[-1] if why else why)
         self._close_segment(robot, "closed")
+        self._close_recorder(robot, None, robot.steps, "faulted")
         self.queue.close(robot.id)
         robot.mode, robot.fault, robot.awaiting = "faulted", why, False
         if robot.process is not None and robot.process.is_alive():
@@ -198,6 +203,7 @@ class Fleet:
         with self.lock:
             for robot in self.robots.values():
                 self._close_segment(robot, "closed")
+                self._close_recorder(robot, None, robot.steps, "service stopped")
                 if robot.conn is not None:
                     with contextlib.suppress(OSError, BrokenPipeError):
                         robot.conn.send(("close", None))
@@ -259,6 +265,7 @@ class Fleet:
                 self._fault(robot, str(payload))
                 return False
             robot.frame = payload
+            self._record(robot, payload)
             obs = torch.as_tensor(payload["obs"])
             if not robot.history:
                 robot.history.extend([obs] * robot.slot.policy.config.obs_horizon)
@@ -314,7 +321,7 @@ class Fleet:
                 self.queue.open(r.id, float(scores.value[j]), slot.threshold, "uncertainty above threshold")
                 self._send(r, r.hold_target)
             else:
-                self._send(r, chunks[j, 0].numpy().astype(np.float64))
+                self._send(r, chunks[j, 0].numpy().astype(np.float64), keys.SOURCE_POLICY)
 
     def _remember(self, robot: Robot, scores, j: int) -> None:
         res = scores.detail.robot(j)
@@ -367,7 +374,7 @@ class Fleet:
                 field=_world_field(slot, scores.detail.robot(j)),
             )
         robot.assisted_steps += 1
-        self._send(robot, action)
+        self._send(robot, action, keys.SOURCE_OPERATOR)
         robot.latencies.append(time.monotonic() - received)
         robot.below = robot.below + 1 if u <= slot.threshold else 0
         if robot.teleop_left is not None:
@@ -376,7 +383,19 @@ class Fleet:
         if (robot.teleop_left is not None and robot.teleop_left <= 0) or (auto_k and robot.below >= auto_k):
             self._hand_back(robot)
 
-    def _send(self, robot: Robot, action: np.ndarray) -> None:
+    def _send(self, robot: Robot, action: np.ndarray, source: str = keys.SOURCE_HOLD) -> None:
+        if robot.recorder is not None and robot.frame is not None:
+            f = robot.frame
+            robot.pending_step = (
+                f["t"],
+                f["obs"],
+                np.asarray(action, np.float64),
+                f["pos"],
+                f["quat"],
+                f["gripper"],
+                source,
+                f["bodies"],
+            )
         try:
             robot.conn.send(("step", np.asarray(action, dtype=np.float64)))
             robot.awaiting = True
@@ -384,9 +403,37 @@ class Fleet:
         except (OSError, BrokenPipeError) as exc:
             self._fault(robot, f"worker pipe broke: {exc}")
 
+    def _record(self, robot: Robot, frame: dict) -> None:
+        """Whole-episode MCAP recording: the step sent last, with the success that followed it."""
+        if not self.settings.record_episodes:
+            return
+        if robot.pending_step is not None and robot.recorder is not None:
+            t, obs, action, pos, quat, gripper, source, bodies = robot.pending_step
+            robot.recorder.write_step(t, obs, action, pos, quat, gripper, frame["success"], source, bodies)
+        robot.pending_step = None
+        if frame["t"] == 0 and not frame["done"] and robot.recorder is None:
+            path = Path(self.settings.data_dir) / "episodes" / f"robot{robot.id:03d}_ep{robot.episode_id:06d}.mcap"
+            meta = {"task": robot.task, "seed": robot.seed, "robot": robot.id, "policy": str(robot.slot.path)}
+            robot.recorder = EpisodeWriter(path, meta, object_names=list(frame["bodies"]))
+            with self.sessions() as s:
+                row = s.get(EpisodeRecord, robot.episode_id)
+                if row is not None:
+                    row.path = str(path)
+                    s.commit()
+
+    def _close_recorder(self, robot: Robot, success: bool | None, steps: int, reason: str) -> None:
+        rec, robot.recorder, robot.pending_step = robot.recorder, None, None
+        if rec is None:
+            return
+        if success is None:
+            rec.close()  # unfinished: readable with recover=True
+        else:
+            rec.finish(success, steps, reason)
+
     def _end_episode(self, robot: Robot) -> None:
         frame = robot.frame
         outcome = "success" if frame["success"] else "timeout"
+        self._close_recorder(robot, bool(frame["success"]), int(frame["t"]), outcome)
         self._close_segment(robot, "closed")
         self.queue.close(robot.id)
         robot.mode = "done" if robot.mode != "paused" else "paused"
@@ -523,6 +570,7 @@ class Fleet:
             if robot.mode == "faulted":
                 raise FleetError(409, f"robot {robot_id} is faulted; it restarts by itself")
             self._close_segment(robot, "closed")
+            self._close_recorder(robot, None, robot.steps, "reset")
             self.queue.close(robot.id)
             if robot.awaiting:  # the answer to the step in flight is dropped
                 with contextlib.suppress(EOFError, OSError):

@@ -17,7 +17,8 @@ SOURCE = "source"  # who produced the action: see SOURCES
 SOURCE_EXPERT = "expert"  # scripted demonstrator
 SOURCE_POLICY = "policy"  # autonomous diffusion policy
 SOURCE_OPERATOR = "operator"  # human (or simulated human) takeover
-SOURCES = (SOURCE_EXPERT, SOURCE_POLICY, SOURCE_OPERATOR)
+SOURCE_HOLD = "hold"  # the service holding the pose (waiting for an operator, paused)
+SOURCES = (SOURCE_EXPERT, SOURCE_POLICY, SOURCE_OPERATOR, SOURCE_HOLD)
 
 # -- MCAP ------------------------------------------------------------------------
 MCAP_PROFILE = "hitl"

@@ -111,3 +111,28 @@ def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status):
     with sessions() as s:
         row = s.query(SegmentRecord).one()
         assert row.status == status and row.steps >= 1
+
+
+def test_whole_episodes_are_recorded_when_asked(tmp_path):
+    from storage.episodes import read_episode
+
+    policy = _tiny_policy(tmp_path / "policy", "lift-cube", threshold=1e9)  # never asks: autonomous
+    settings = Settings(
+        data_dir=tmp_path / "var",
+        port=_free_port(),
+        robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
+        control_hz=0,
+        record_episodes=True,
+    )
+    sessions = _sessions(settings)
+    h = {"Authorization": f"Bearer {create_token(sessions, 'viewer', 'viewer')}"}
+    with Service(settings) as svc:
+        api = svc.url + "/api/v1"
+        done = _wait(lambda: [e for e in httpx.get(api + "/episodes", headers=h).json() if e["outcome"]], 120)
+    from server.db import EpisodeRecord
+
+    with sessions() as s:
+        row = s.get(EpisodeRecord, done[-1]["id"])
+    ep = read_episode(row.path)
+    assert len(ep) == row.steps == done[-1]["steps"] and ep.outcome is not None
+    assert set(ep.sources) == {"policy"}
