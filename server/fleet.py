@@ -28,7 +28,9 @@ import torch
 from sqlalchemy.orm import sessionmaker
 
 from policy.checkpoint import load_calibration, load_policy
-from policy.signals.base import SignalInput
+from policy.signals import SignalError, load_signal, make_signal
+from policy.signals.base import SignalInput, TriggerState
+from policy.signals.registry import signal_dir
 from policy.signals.sampling import DenoisingSignal
 from server.assistance import AssistanceQueue, QueueError
 from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
@@ -59,8 +61,16 @@ class PolicySlot:
     path: Path
     policy: object
     task: str
-    threshold: float
-    signal: DenoisingSignal
+    threshold: float  # the denoising metric's (what the console draws U against)
+    signals: dict  # name -> AssistanceSignal; always holds "denoising"
+    active: str  # the signal that asks for help
+
+    def score(self, batch: SignalInput) -> dict:
+        return {name: signal.score(batch) for name, signal in self.signals.items()}
+
+    def reset(self, robot_ids: list[int]) -> None:
+        for signal in self.signals.values():
+            signal.reset(robot_ids)
 
 
 @dataclass
@@ -129,8 +139,19 @@ class Fleet:
             raise FleetError(
                 500, f"policy {path} expects {policy.config.obs_dim}-dim observations, {task} gives {obs_dim}"
             )
-        signal = DenoisingSignal(policy)
-        signal.calibration = {"threshold": float(calibration["threshold"])}
+        signals = {}
+        for name in dict.fromkeys([self.settings.signal, "denoising", *self.settings.shadow_signals]):
+            if name == "denoising" and not signal_dir(path, name).is_dir():
+                signals[name] = DenoisingSignal(policy)  # threshold from `hitl calibrate`
+                signals[name].calibration = {"threshold": float(calibration["threshold"])}
+                continue
+            if name in ("full-teleop", "random") and not signal_dir(path, name).is_dir():
+                signals[name] = make_signal(name, policy)  # nothing to learn: defaults
+                continue
+            try:
+                signals[name] = load_signal(policy, path, name)
+            except (SignalError, ValueError) as exc:
+                raise FleetError(500, f"policy {path}: signal {name!r} is not ready: {exc}") from exc
         with self.sessions() as s:
             row = s.query(PolicyVersion).filter_by(path=key).one_or_none()
             if row is None:
@@ -140,7 +161,7 @@ class Fleet:
                 s.add(row)
                 s.commit()
             pid = row.id
-        slot = PolicySlot(pid, path, policy, task, float(calibration["threshold"]), signal)
+        slot = PolicySlot(pid, path, policy, task, float(signals["denoising"].threshold), signals, self.settings.signal)
         self.slots[key] = slot
         return slot
 
@@ -163,6 +184,7 @@ class Fleet:
         self._new_episode(robot)
 
     def _new_episode(self, robot: Robot) -> None:
+        robot.slot.reset([robot.id])
         robot.seed += 1
         robot.steps = robot.assisted_steps = robot.events = 0
         robot.history.clear()
@@ -309,16 +331,20 @@ class Fleet:
     def _autonomous(self, robots: list[Robot]) -> None:
         slot = robots[0].slot
         obs, current = self._batch(robots)
+        ids = np.array([r.id for r in robots])
         with torch.no_grad():
             chunks = slot.policy.predict_action_chunk(obs)
-            scores = slot.signal.score(SignalInput(obs, current, np.array([r.id for r in robots]), action=chunks))
-        wants = scores.value > slot.threshold
+            scores = slot.score(SignalInput(obs, current, ids, action=chunks))
+        state = TriggerState.autonomous(ids)
+        decisions = {name: slot.signals[name].wants_help(sc, state) for name, sc in scores.items()}
+        active = slot.signals[slot.active]
         for j, r in enumerate(robots):
-            self._remember(r, scores, j)
-            if wants[j]:
+            self._remember(r, scores["denoising"], j)
+            if decisions[slot.active][j]:
+                value, threshold = float(scores[slot.active].value[j]), active.threshold
                 r.mode, r.hold_target = "waiting", r.frame["hold"].copy()
                 r.events += 1
-                self.queue.open(r.id, float(scores.value[j]), slot.threshold, "uncertainty above threshold")
+                self.queue.open(r.id, value, threshold, f"{slot.active} score {value:.3g} over {threshold:.3g}")
                 self._send(r, r.hold_target)
             else:
                 self._send(r, chunks[j, 0].numpy().astype(np.float64), keys.SOURCE_POLICY)
@@ -339,23 +365,27 @@ class Fleet:
         }
 
     def _teleop(self, robots: list[Robot]) -> None:
-        """Applies each robot's pending command; U in shadow (batched) for the segment and auto-return."""
+        """Applies each robot's pending command; every signal scored in shadow (one batch per policy)
+        for the segment, the console and auto-return."""
         slot = robots[0].slot
         obs, current = self._batch(robots)
+        targets = []
+        for r in robots:
+            cmd, received = r.command
+            r.command = None
+            targets.append((cmd, received, r.action_space.apply_teleop(cmd, r.frame["pos"], r.frame["rot"])))
+        operator = torch.as_tensor(np.stack([t.action for _, _, t in targets]), dtype=torch.float32)
         with torch.no_grad():
-            scores = slot.signal.score(SignalInput(obs, current, np.array([r.id for r in robots])))
+            scores = slot.score(SignalInput(obs, current, np.array([r.id for r in robots]), operator_action=operator))
         for j, robot in enumerate(robots):
-            self._apply_command(robot, scores, j)
+            self._apply_command(robot, scores, j, *targets[j])
 
-    def _apply_command(self, robot: Robot, scores, j: int) -> None:
-        cmd, received = robot.command
-        robot.command = None
+    def _apply_command(self, robot: Robot, scores: dict, j: int, cmd, received: float, target) -> None:
         slot = robot.slot
-        target = robot.action_space.apply_teleop(cmd, robot.frame["pos"], robot.frame["rot"])
         action = target.action
         robot.hold_target = action.copy()
-        self._remember(robot, scores, j)
-        u = float(scores.value[j])
+        self._remember(robot, scores["denoising"], j)
+        u = float(scores["denoising"].value[j])
         if robot.segment is not None:
             label = slot.policy.normalize_action(torch.as_tensor(action, dtype=torch.float32)).numpy()
             robot.segment.write_step(
@@ -371,7 +401,8 @@ class Fleet:
                 robot.frame["pos"],
                 robot.frame["quat"],
                 u,
-                field=_world_field(slot, scores.detail.robot(j)),
+                shadow={name: float(sc.value[j]) for name, sc in scores.items() if name != "denoising"},
+                field=_world_field(slot, scores["denoising"].detail.robot(j)),
             )
         robot.assisted_steps += 1
         self._send(robot, action, keys.SOURCE_OPERATOR)

@@ -51,6 +51,8 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535)
     control_hz: float = Field(10.0, ge=0, le=200, description="0: free-running (benchmarks)")
     robots: list[RobotGroup] = Field(default_factory=lambda: [RobotGroup(task="lift-cube", count=1)])
+    signal: str = Field("denoising", description="the assistance signal that asks for help")
+    shadow_signals: list[str] = Field(default_factory=list, description="signals scored alongside, recorded")
     trigger_mode: Literal["budgeted", "continuous"] = "budgeted"
     budget_steps: int = Field(4, ge=1, le=1000)
     auto_return_steps: int | None = Field(None, ge=1, description="hand back after K steps of U under threshold")
@@ -58,6 +60,22 @@ class Settings(BaseSettings):
     record_episodes: bool = False
     max_body_bytes: int = Field(64 * 1024, ge=1024)
     seed: int = 0
+
+    @field_validator("signal")
+    @classmethod
+    def _known_signal(cls, v: str) -> str:
+        from policy.signals import SIGNALS
+
+        if v not in SIGNALS:
+            raise ValueError(f"unknown signal {v!r}; registered signals: {', '.join(SIGNALS)}")
+        return v
+
+    @field_validator("shadow_signals")
+    @classmethod
+    def _known_shadows(cls, v: list[str]) -> list[str]:
+        for name in v:
+            cls._known_signal(name)
+        return v
 
     @model_validator(mode="after")
     def _robots_present(self) -> Settings:

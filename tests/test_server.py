@@ -14,9 +14,10 @@ import uvicorn
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from policy.checkpoint import save_calibration, save_policy
+from policy.checkpoint import load_policy, save_calibration, save_policy
 from policy.config import DiffusionPolicyConfig
 from policy.diffusion_policy import DiffusionPolicy
+from policy.signals import make_signal, save_signal
 from server.app import create_app
 from server.auth import create_token
 from server.db import make_engine, migrate, session_factory
@@ -77,6 +78,9 @@ class Service:
 def service(tmp_path_factory):
     root = tmp_path_factory.mktemp("svc")
     policy = _tiny_policy(root / "policy", "lift-cube", threshold=-1.0)  # every robot asks at once
+    shadow = make_signal("output-variance", load_policy(policy)[0], {"num_samples": 8})
+    shadow.calibration = {"threshold": 1.0, "quantile": 0.95, "samples": 0}  # scored, never drives
+    save_signal(shadow, policy)
     settings = Settings(
         data_dir=root / "var",
         port=_free_port(),
@@ -84,6 +88,7 @@ def service(tmp_path_factory):
         lease_seconds=1.5,
         budget_steps=3,
         control_hz=20,
+        shadow_signals=["output-variance", "random"],
     )
     migrate(settings.db_url)
     sessions = session_factory(make_engine(settings.db_url))
@@ -183,6 +188,7 @@ def test_takeover_round_trip_records_a_segment(service):
     assert obs.shape[0] == labels.shape[0] == 3 and np.isfinite(labels).all()
     assert segment.meta["robot"] == 0 and segment.end["status"] == "closed"
     assert [s["command"]["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
+    assert all(set(s["shadow"]) == {"output-variance", "random"} for s in segment.steps)
     fields = segment.fields
     assert len(fields) == 3 and len(fields[0]["entities"][0]["arrows"]) > 0  # the vector field, for Foxglove
     assert before["episode_id"] == start["episode_id"]
