@@ -90,13 +90,13 @@ def fleet_throughput(task: str, n: int, seconds: float, data_dir: Path) -> dict:
         threading.Thread(target=operator, daemon=True).start()
         time.sleep(1.0)
         with fleet.lock:
-            steps0 = sum(r.steps for r in fleet.robots.values())
+            steps0 = fleet.env_steps
             ticks0 = fleet.ticks
             fleet.tick_periods.clear()
             fleet.robots[0].latencies.clear()
         time.sleep(seconds)
         with fleet.lock:
-            steps = sum(r.steps for r in fleet.robots.values()) - steps0
+            steps = fleet.env_steps - steps0
             ticks = fleet.ticks - ticks0
             periods = np.array(fleet.tick_periods)
             lat = np.array(fleet.robots[0].latencies)
@@ -111,6 +111,8 @@ def fleet_throughput(task: str, n: int, seconds: float, data_dir: Path) -> dict:
         "command_latency_p50_ms": float(np.quantile(lat, 0.5) * 1e3) if len(lat) else None,
         "command_latency_p99_ms": float(np.quantile(lat, 0.99) * 1e3) if len(lat) else None,
         "commands_applied": int(len(lat)),
+        # target: command-to-applied p99 within one control period (here the median tick) + 20 ms
+        "latency_target_ms": float(np.quantile(periods, 0.5) * 1e3 + 20) if len(periods) else None,
     }
 
 

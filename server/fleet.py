@@ -120,6 +120,7 @@ class Fleet:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.ticks = 0
+        self.env_steps = 0  # actions sent to workers, all robots, since start
         self.tick_periods: deque = deque(maxlen=2000)
         self._ctx = mp.get_context("spawn")
         self.operator_busy: dict[str, float] = {}
@@ -371,8 +372,7 @@ class Fleet:
         obs, current = self._batch(robots)
         targets = []
         for r in robots:
-            cmd, received = r.command
-            r.command = None
+            (cmd, received), r.command = r.command, None  # a command arriving meanwhile waits for the next tick
             targets.append((cmd, received, r.action_space.apply_teleop(cmd, r.frame["pos"], r.frame["rot"])))
         operator = torch.as_tensor(np.stack([t.action for _, _, t in targets]), dtype=torch.float32)
         with torch.no_grad():
@@ -431,6 +431,7 @@ class Fleet:
             robot.conn.send(("step", np.asarray(action, dtype=np.float64)))
             robot.awaiting = True
             robot.steps += 1
+            self.env_steps += 1
         except (OSError, BrokenPipeError) as exc:
             self._fault(robot, f"worker pipe broke: {exc}")
 
@@ -568,12 +569,13 @@ class Fleet:
             self._hand_back(robot)
 
     def command(self, robot_id: int, operator: str, command: TeleopCommand) -> None:
-        with self.lock:
-            robot = self.robot(robot_id)
-            self.queue.check_holder(robot_id, operator)
-            if robot.mode != "teleop":
-                raise QueueError(409, f"robot {robot_id} is {robot.mode}, not under teleop")
-            robot.command = (command, time.monotonic())
+        """Stores the command for the next tick. It does not wait for a tick in progress (no fleet lock):
+        the command slot is one attribute, swapped atomically by the tick."""
+        robot = self.robot(robot_id)
+        self.queue.check_holder(robot_id, operator)
+        if robot.mode != "teleop":
+            raise QueueError(409, f"robot {robot_id} is {robot.mode}, not under teleop")
+        robot.command = (command, time.monotonic())
 
     def pause(self, robot_id: int) -> None:
         with self.lock:

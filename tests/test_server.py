@@ -235,3 +235,39 @@ def test_the_operator_bot_completes_takeovers_through_the_api(service):
     assert segment.meta["operator"] == "bot" and len(segment.steps) == segs[0]["steps"]
     metrics = httpx.get(api + "/metrics/fleet", headers=_h(service, "viewer")).json()
     assert metrics["queue_wait_p50_s"] is not None and "bot" in metrics["operator_busy_s"]
+
+
+def test_admin_pauses_resumes_and_resets_a_robot(service):
+    api, admin = service.url + "/api/v1", _h(service, "admin")
+    episode = _robot(service, 1)["episode_id"]
+    r = httpx.post(api + "/robots/1/pause", headers=admin)
+    assert r.status_code == 200 and r.json()["mode"] == "paused"
+    time.sleep(0.5)
+    pose = _robot(service, 1)["pose"]["position"]
+    time.sleep(0.5)
+    assert _robot(service, 1)["mode"] == "paused"
+    assert np.allclose(_robot(service, 1)["pose"]["position"], pose, atol=2e-3)  # holds, no drift
+    assert httpx.post(api + "/robots/1/pause", headers=admin).json()["mode"] == "paused"  # idempotent
+    assert httpx.post(api + "/robots/1/resume", headers=admin).status_code == 200
+    assert httpx.post(api + "/robots/1/resume", headers=admin).status_code in (200, 409)
+    assert httpx.post(api + "/robots/42/reset", headers=admin).status_code == 404
+    assert httpx.post(api + "/robots/1/reset", headers=admin).status_code == 200
+    assert _wait(lambda: _robot(service, 1)["episode_id"] != episode)
+
+
+def test_an_operator_streams_commands_over_the_websocket(service):
+    api, op = service.url + "/api/v1", _h(service, "operator")
+    _wait(lambda: _robot(service, 0)["mode"] == "waiting")
+    assert httpx.post(api + "/robots/0/claim", headers=op).status_code == 200
+    before = _robot(service, 0)["assisted_steps"]
+    ws = service.url.replace("http", "ws") + "/api/v1/robots/0/teleop"
+    with connect(ws, additional_headers=op) as conn:
+        conn.send(json.dumps({"delta_pos": [0, 0, 0.01], "gripper": -1}))
+        conn.send(json.dumps({"delta_pos": [float("nan"), 0, 0], "gripper": -1}))
+        replies = []
+        while len([r for r in replies if "state" not in r]) < 2:
+            replies.append(json.loads(conn.recv(timeout=10)))
+        answers = [r for r in replies if "state" not in r]
+        assert answers[0] == {"accepted": True} and answers[1]["status"] == 422
+    _wait(lambda: _robot(service, 0)["assisted_steps"] > before)
+    httpx.post(api + "/robots/0/release", headers=op)

@@ -116,9 +116,8 @@ async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
                 fleet.command(robot_id, principal.name, cmd)
                 await websocket.send_json({"accepted": True})
             except ValidationError as exc:
-                await websocket.send_json(
-                    {"error": exc.errors(include_url=False, include_context=False), "status": 422}
-                )
+                errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
+                await websocket.send_json({"error": errors, "status": 422})  # bad values are not echoed
             except (QueueError, FleetError) as exc:
                 await websocket.send_json({"error": str(exc), "status": exc.status})
     except WebSocketDisconnect:
