@@ -79,6 +79,7 @@ def _cmd_train_signal(args: argparse.Namespace) -> int:
 
 def _signals_for(policy, policy_dir: Path, names: list[str], quiet: bool) -> dict:
     """Loads the named signals saved next to the policy; ``full-teleop`` and ``random`` need no files."""
+    from policy.checkpoint import load_calibration
     from policy.signals import SignalError, load_signal, make_signal
 
     out = {}
@@ -88,6 +89,9 @@ def _signals_for(policy, policy_dir: Path, names: list[str], quiet: bool) -> dic
         except SignalError as exc:
             if name in ("full-teleop", "random"):  # nothing to learn: defaults
                 out[name] = make_signal(name, policy)
+            elif name == "denoising" and load_calibration(policy_dir) is not None:  # from `hitl calibrate`
+                out[name] = make_signal(name, policy)
+                out[name].calibration = {"threshold": float(load_calibration(policy_dir)["threshold"])}
             else:
                 raise SignalError(f"{name}: {exc}") from exc
     return out

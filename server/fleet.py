@@ -213,6 +213,8 @@ class Fleet:
         robot.restarts += 1
 
     def start(self) -> None:
+        # the physics workers keep the cores busy: intra-op threads in the server only contend with them
+        torch.set_num_threads(self.settings.torch_threads)
         for robot in self.robots.values():
             self._spawn(robot)
         self._thread = threading.Thread(target=self._loop, name="fleet-control", daemon=True)

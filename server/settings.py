@@ -60,6 +60,7 @@ class Settings(BaseSettings):
     record_episodes: bool = False
     max_body_bytes: int = Field(64 * 1024, ge=1024)
     seed: int = 0
+    torch_threads: int = Field(1, ge=1, le=256, description="server-side torch threads; workers take the other cores")
 
     @field_validator("signal")
     @classmethod

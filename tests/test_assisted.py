@@ -1,28 +1,9 @@
 import numpy as np
-import torch
 
 from policy.assisted import AssistConfig, run_assisted, summarize_assisted
-from policy.config import DiffusionPolicyConfig
-from policy.diffusion_policy import DiffusionPolicy
 from policy.signals import make_signal
 from policy.signals.base import Scores, TriggerState
-from sim.registry import make_task
-
-
-def _policy(task="lift-cube"):
-    """An untrained tiny policy: its actions are noise, so any success comes from the operator."""
-    torch.manual_seed(0)
-    obs_dim = make_task(task).obs_spec.dim
-    p = DiffusionPolicy(
-        DiffusionPolicyConfig(obs_dim=obs_dim, network="mlp", mlp_hidden=16, step_embed_dim=8, num_inference_steps=2)
-    )
-    rng = np.random.default_rng(0)
-    # normalization around the lift workspace so sampled poses stay near the table
-    acts = np.concatenate(
-        [rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0], (64, 3)), np.tile([0, 1, 0, 1, 0, 0, -1], (64, 1))], 1
-    )
-    p.fit_normalizers(rng.normal(size=(64, obs_dim)), acts)
-    return p.eval()
+from tests.helpers import tiny_policy
 
 
 class _Every:
@@ -49,7 +30,7 @@ class _Every:
 
 
 def test_budgeted_takeovers_last_the_budget_and_shadow_signals_score_every_step():
-    policy = _policy()
+    policy = tiny_policy()
     shadow = {"denoising": make_signal("denoising", policy, {"num_samples": 16, "max_modes": 2})}
     shadow["denoising"].calibration = {"threshold": 1e9}
     cfg = AssistConfig(mode="budgeted", budget=3, n_envs=2)
@@ -65,7 +46,7 @@ def test_budgeted_takeovers_last_the_budget_and_shadow_signals_score_every_step(
 
 
 def test_full_teleop_in_continuous_mode_lets_the_operator_finish_the_task():
-    policy = _policy()
+    policy = tiny_policy()
     driver = make_signal("full-teleop", policy)
     episodes, _ = run_assisted(
         policy, "lift-cube", [7], driver, {}, AssistConfig(mode="continuous", n_envs=1), progress=False

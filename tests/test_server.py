@@ -2,88 +2,33 @@
 
 import json
 import math
-import socket
-import threading
 import time
 
 import httpx
 import numpy as np
 import pytest
-import torch
-import uvicorn
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from policy.checkpoint import load_policy, save_calibration, save_policy
-from policy.config import DiffusionPolicyConfig
-from policy.diffusion_policy import DiffusionPolicy
+from policy.checkpoint import load_policy
 from policy.signals import make_signal, save_signal
-from server.app import create_app
 from server.auth import create_token
 from server.db import make_engine, migrate, session_factory
 from server.settings import RobotGroup, Settings
-from sim.registry import make_task
 from storage.segments import read_segment
-
-
-def _tiny_policy(folder, task, threshold):
-    torch.manual_seed(0)
-    obs_dim = make_task(task).obs_spec.dim
-    p = DiffusionPolicy(
-        DiffusionPolicyConfig(obs_dim=obs_dim, network="mlp", mlp_hidden=16, step_embed_dim=8, num_inference_steps=2)
-    )
-    rng = np.random.default_rng(0)
-    acts = np.concatenate(
-        [rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0], (64, 3)), np.tile([0, 1, 0, 1, 0, 0, -1], (64, 1))], 1
-    )
-    p.fit_normalizers(rng.normal(size=(64, obs_dim)), acts)
-    save_policy(p, folder, {"task": task})
-    save_calibration(folder, {"threshold": threshold, "quantile": 0.95, "samples": 0})
-    return folder
-
-
-def _free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Service:
-    def __init__(self, settings):
-        self.settings = settings
-        self.url = f"http://127.0.0.1:{settings.port}"
-        self.server = uvicorn.Server(
-            uvicorn.Config(create_app(settings), host="127.0.0.1", port=settings.port, log_level="warning")
-        )
-        self.thread = threading.Thread(target=self.server.run, daemon=True)
-
-    def __enter__(self):
-        self.thread.start()
-        deadline = time.time() + 120
-        while time.time() < deadline:
-            try:
-                if httpx.get(self.url + "/readyz").status_code == 200:
-                    return self
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        raise RuntimeError("service did not become ready")
-
-    def __exit__(self, *exc):
-        self.server.should_exit = True
-        self.thread.join(timeout=60)
+from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
 
 
 @pytest.fixture(scope="module")
 def service(tmp_path_factory):
     root = tmp_path_factory.mktemp("svc")
-    policy = _tiny_policy(root / "policy", "lift-cube", threshold=-1.0)  # every robot asks at once
+    policy = tiny_policy_folder(root / "policy", "lift-cube", threshold=-1.0)  # every robot asks at once
     shadow = make_signal("output-variance", load_policy(policy)[0], {"num_samples": 8})
     shadow.calibration = {"threshold": 1.0, "quantile": 0.95, "samples": 0}  # scored, never drives
     save_signal(shadow, policy)
     settings = Settings(
         data_dir=root / "var",
-        port=_free_port(),
+        port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
         lease_seconds=1.5,
         budget_steps=3,
@@ -101,16 +46,6 @@ def service(tmp_path_factory):
 
 def _h(svc, who):
     return {"Authorization": f"Bearer {svc.tokens[who]}"}
-
-
-def _wait(fn, timeout=30.0):
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        value = fn()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError("condition not met in time")
 
 
 def _robot(svc, rid):
@@ -139,7 +74,7 @@ def test_auth_needs_a_token_and_the_right_role(service):
 
 def test_takeover_round_trip_records_a_segment(service):
     api, op = service.url + "/api/v1", _h(service, "operator")
-    _wait(lambda: _robot(service, 0)["mode"] == "waiting")
+    wait_for(lambda: _robot(service, 0)["mode"] == "waiting")
     queue = httpx.get(api + "/assistance", headers=_h(service, "viewer")).json()
     assert any(r["robot_id"] == 0 for r in queue)
     before = _robot(service, 0)
@@ -170,8 +105,8 @@ def test_takeover_round_trip_records_a_segment(service):
     for _ in range(3):  # the budget: 3 operator steps, then the policy is back
         assert httpx.post(api + "/robots/0/command", json=cmd, headers=op).status_code == 200
         time.sleep(0.15)
-    _wait(lambda: _robot(service, 0)["assisted_steps"] >= 3)
-    seg = _wait(
+    wait_for(lambda: _robot(service, 0)["assisted_steps"] >= 3)
+    seg = wait_for(
         lambda: [
             s
             for s in httpx.get(api + "/segments?robot_id=0", headers=_h(service, "viewer")).json()
@@ -197,10 +132,10 @@ def test_takeover_round_trip_records_a_segment(service):
 
 def test_an_expired_lease_requeues_the_request(service):
     api, op = service.url + "/api/v1", _h(service, "operator")
-    _wait(lambda: _robot(service, 1)["mode"] == "waiting")
+    wait_for(lambda: _robot(service, 1)["mode"] == "waiting")
     assert httpx.post(api + "/robots/1/claim", headers=op).status_code == 200
     assert _robot(service, 1)["mode"] == "teleop"
-    _wait(lambda: _robot(service, 1)["mode"] == "waiting", timeout=10)  # no heartbeat for 1.5 s
+    wait_for(lambda: _robot(service, 1)["mode"] == "waiting", timeout=10)  # no heartbeat for 1.5 s
     req = [r for r in httpx.get(api + "/assistance", headers=_h(service, "viewer")).json() if r["robot_id"] == 1][0]
     assert req["holder"] is None
     # now anyone may claim it
@@ -220,7 +155,7 @@ def test_the_operator_bot_completes_takeovers_through_the_api(service):
         bot.close()
     assert bot.takeovers == 2 and bot.commands >= 2
     api = service.url + "/api/v1"
-    segs = _wait(
+    segs = wait_for(
         lambda: [
             s
             for s in httpx.get(api + "/segments?operator=bot", headers=_h(service, "viewer")).json()
@@ -252,12 +187,12 @@ def test_admin_pauses_resumes_and_resets_a_robot(service):
     assert httpx.post(api + "/robots/1/resume", headers=admin).status_code in (200, 409)
     assert httpx.post(api + "/robots/42/reset", headers=admin).status_code == 404
     assert httpx.post(api + "/robots/1/reset", headers=admin).status_code == 200
-    assert _wait(lambda: _robot(service, 1)["episode_id"] != episode)
+    assert wait_for(lambda: _robot(service, 1)["episode_id"] != episode)
 
 
 def test_an_operator_streams_commands_over_the_websocket(service):
     api, op = service.url + "/api/v1", _h(service, "operator")
-    _wait(lambda: _robot(service, 0)["mode"] == "waiting")
+    wait_for(lambda: _robot(service, 0)["mode"] == "waiting")
     assert httpx.post(api + "/robots/0/claim", headers=op).status_code == 200
     before = _robot(service, 0)["assisted_steps"]
     ws = service.url.replace("http", "ws") + "/api/v1/robots/0/teleop"
@@ -269,5 +204,5 @@ def test_an_operator_streams_commands_over_the_websocket(service):
             replies.append(json.loads(conn.recv(timeout=10)))
         answers = [r for r in replies if "state" not in r]
         assert answers[0] == {"accepted": True} and answers[1]["status"] == 422
-    _wait(lambda: _robot(service, 0)["assisted_steps"] > before)
+    wait_for(lambda: _robot(service, 0)["assisted_steps"] > before)
     httpx.post(api + "/robots/0/release", headers=op)

@@ -12,7 +12,7 @@ import pytest
 from server.auth import create_token
 from server.db import SegmentRecord, make_engine, migrate, session_factory
 from server.settings import RobotGroup, Settings
-from tests.test_server import Service, _free_port, _tiny_policy, _wait
+from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
 
 
 def _sessions(settings):
@@ -21,10 +21,10 @@ def _sessions(settings):
 
 
 def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
-    policy = _tiny_policy(tmp_path / "policy", "lift-cube", threshold=-1.0)
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
     settings = Settings(
         data_dir=tmp_path / "var",
-        port=_free_port(),
+        port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
         control_hz=20,
         budget_steps=100,
@@ -34,18 +34,18 @@ def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
     h = {"Authorization": f"Bearer {token}"}
     with Service(settings) as svc:
         api = svc.url + "/api/v1"
-        _wait(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
+        wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
         assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
         fleet = svc.server.config.app.state.fleet  # the worker pid is not part of the API
         pid = fleet.robots[0].process.pid
         os.kill(pid, signal.SIGKILL)
-        robot = _wait(lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] == "faulted" and r)
+        robot = wait_for(lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] == "faulted" and r)
         assert "exited" in robot["fault"] or "broke" in robot["fault"]
         with sessions() as s:
             rows = s.query(SegmentRecord).all()
             assert rows and all(r.status == "closed" for r in rows)
         # restarted with backoff, then the policy runs (and, with this threshold, asks) again
-        again = _wait(
+        again = wait_for(
             lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] in ("autonomous", "waiting") and r, 30
         )
         assert again["restarts"] == 1 and fleet.robots[0].process.pid != pid
@@ -73,7 +73,7 @@ def _ready(url, timeout=120):
 
 @pytest.mark.parametrize(("sig", "status"), [(signal.SIGKILL, "recovered"), (signal.SIGTERM, "closed")])
 def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status):
-    policy = _tiny_policy(tmp_path / "policy", "lift-cube", threshold=-1.0)
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
     config = tmp_path / "fleet.toml"
     config.write_text(
         f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget_steps = 100\n'
@@ -82,12 +82,12 @@ def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status):
     settings = Settings.load(config)
     sessions = _sessions(settings)
     h = {"Authorization": f"Bearer {create_token(sessions, 'op', 'operator')}"}
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
     proc = _serve(config, port)
     try:
         _ready(url)
-        _wait(lambda: httpx.get(url + "/api/v1/robots/0", headers=h).json()["mode"] == "waiting")
+        wait_for(lambda: httpx.get(url + "/api/v1/robots/0", headers=h).json()["mode"] == "waiting")
         assert httpx.post(url + "/api/v1/robots/0/claim", headers=h).status_code == 200
         cmd = {"delta_pos": [0, 0, 0.01], "gripper": -1}
         for _ in range(3):
@@ -116,10 +116,10 @@ def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status):
 def test_whole_episodes_are_recorded_when_asked(tmp_path):
     from storage.episodes import read_episode
 
-    policy = _tiny_policy(tmp_path / "policy", "lift-cube", threshold=1e9)  # never asks: autonomous
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=1e9)  # never asks: autonomous
     settings = Settings(
         data_dir=tmp_path / "var",
-        port=_free_port(),
+        port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
         control_hz=0,
         record_episodes=True,
@@ -128,7 +128,7 @@ def test_whole_episodes_are_recorded_when_asked(tmp_path):
     h = {"Authorization": f"Bearer {create_token(sessions, 'viewer', 'viewer')}"}
     with Service(settings) as svc:
         api = svc.url + "/api/v1"
-        done = _wait(lambda: [e for e in httpx.get(api + "/episodes", headers=h).json() if e["outcome"]], 120)
+        done = wait_for(lambda: [e for e in httpx.get(api + "/episodes", headers=h).json() if e["outcome"]], 120)
     from server.db import EpisodeRecord
 
     with sessions() as s:
