@@ -203,6 +203,7 @@ class Fleet:
         log.warning("robot %d faulted: %s", robot.id, why.splitlines()[-1] if why else why)
         self._close_segment(robot, "closed")
         self._close_recorder(robot, None, robot.steps, "faulted")
+        self._finish_episode_row(robot, "faulted")
         self.queue.close(robot.id)
         robot.mode, robot.fault, robot.awaiting = "faulted", why, False
         if robot.process is not None and robot.process.is_alive():
@@ -464,6 +465,15 @@ class Fleet:
         else:
             rec.finish(success, steps, reason)
 
+    def _finish_episode_row(self, robot: Robot, outcome: str) -> None:
+        """Ends the episode's row early (faulted, reset) so that no episode stays open forever."""
+        with self.sessions() as s:
+            row = s.get(EpisodeRecord, robot.episode_id) if robot.episode_id is not None else None
+            if row is not None and row.outcome is None:
+                row.outcome, row.steps, row.ended_at = outcome, robot.steps, datetime.now(UTC)
+                row.assisted_steps, row.assistance_events = robot.assisted_steps, robot.events
+                s.commit()
+
     def _end_episode(self, robot: Robot) -> None:
         frame = robot.frame
         outcome = "success" if frame["success"] else "timeout"
@@ -595,6 +605,9 @@ class Fleet:
             if robot.mode != "paused":
                 raise FleetError(409, f"robot {robot_id} is {robot.mode}, not paused")
             back = robot.paused_from if robot.paused_from in ("waiting", "teleop") else "autonomous"
+            req = self.queue.get(robot_id)
+            if back == "teleop" and (req is None or req.holder is None):  # the lease ran out while paused
+                back = "waiting" if req is not None else "autonomous"
             robot.mode, robot.paused_from = back, None
             if back == "autonomous":
                 robot.hold_target = None
@@ -606,6 +619,7 @@ class Fleet:
                 raise FleetError(409, f"robot {robot_id} is faulted; it restarts by itself")
             self._close_segment(robot, "closed")
             self._close_recorder(robot, None, robot.steps, "reset")
+            self._finish_episode_row(robot, "reset")
             self.queue.close(robot.id)
             if robot.awaiting:  # the answer to the step in flight is dropped
                 with contextlib.suppress(EOFError, OSError):
@@ -618,7 +632,7 @@ class Fleet:
             robots = list(self.robots.values())
             waits = np.array(self.queue.waits) if self.queue.waits else np.zeros(0)
             with self.sessions() as s:
-                rows = s.query(EpisodeRecord).filter(EpisodeRecord.outcome.isnot(None)).all()
+                rows = s.query(EpisodeRecord).filter(EpisodeRecord.outcome.in_(("success", "timeout"))).all()
             n = len(rows)
             success = sum(r.outcome == "success" for r in rows)
             assisted = sum(r.assisted_steps for r in rows)
