@@ -73,6 +73,27 @@ class PolicySlot:
             signal.reset(robot_ids)
 
 
+@dataclass(frozen=True)
+class RobotView:
+    """A robot as the API shows it, copied at the end of each tick and after each service call."""
+
+    id: int
+    task: str
+    slot: PolicySlot
+    mode: str
+    episode_id: int | None
+    steps: int
+    u_history: tuple
+    frame: dict | None
+    last_result: dict | None
+    episodes_done: int
+    successes: int
+    assisted_steps: int
+    events: int
+    restarts: int
+    fault: str | None
+
+
 @dataclass
 class Robot:
     id: int
@@ -107,6 +128,7 @@ class Robot:
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
     recorder: EpisodeWriter | None = None  # whole-episode recording (settings.record_episodes)
     pending_step: tuple | None = None  # the step sent, written once its outcome arrives
+    view: RobotView | None = None  # what readers see (``Fleet._publish``)
 
 
 class Fleet:
@@ -316,6 +338,8 @@ class Fleet:
                 r.segment.maybe_flush()
         ready = [r for r in self.robots.values() if self._collect(r)]
         if not ready:
+            for r in self.robots.values():  # faults and restarts still show
+                self._publish(r)
             return False
         self.ticks += 1
         for robots in _by_slot(r for r in ready if r.mode == "autonomous").values():
@@ -325,6 +349,8 @@ class Fleet:
         for r in ready:
             if not r.awaiting and r.mode in ("waiting", "paused", "teleop"):  # hold the pose
                 self._send(r, r.hold_target if r.hold_target is not None else r.frame["hold"])
+        for r in self.robots.values():
+            self._publish(r)
         return True
 
     def _batch(self, robots: list[Robot]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -550,6 +576,37 @@ class Fleet:
             obs = torch.as_tensor(robot.frame["obs"])
             robot.history.extend([obs] * robot.slot.policy.config.obs_horizon)
 
+    # -- what readers see -------------------------------------------------------------------------------------
+    def _publish(self, robot: Robot) -> None:
+        """A consistent copy of what the API shows, so readers never wait for a tick in progress."""
+        robot.view = RobotView(
+            id=robot.id,
+            task=robot.task,
+            slot=robot.slot,
+            mode=robot.mode,
+            episode_id=robot.episode_id,
+            steps=robot.steps,
+            u_history=tuple(robot.u_history),
+            frame=robot.frame,
+            last_result=robot.last_result,
+            episodes_done=robot.episodes_done,
+            successes=robot.successes,
+            assisted_steps=robot.assisted_steps,
+            events=robot.events,
+            restarts=robot.restarts,
+            fault=robot.fault,
+        )
+
+    def view(self, robot_id: int) -> RobotView:
+        robot = self.robot(robot_id)
+        if robot.view is None:
+            with self.lock:
+                self._publish(robot)
+        return robot.view
+
+    def views(self) -> list[RobotView]:
+        return [self.view(i) for i in sorted(self.robots)]
+
     # -- service methods (the API calls these) ---------------------------------------------------------------
     def robot(self, robot_id: int) -> Robot:
         robot = self.robots.get(robot_id)
@@ -567,6 +624,7 @@ class Fleet:
                 robot.command = None
                 if robot.segment is None:
                     self._open_segment(robot, operator, req.reason)
+            self._publish(robot)
             return req
 
     def heartbeat(self, robot_id: int, operator: str):
@@ -579,6 +637,7 @@ class Fleet:
             robot = self.robot(robot_id)
             self.queue.check_holder(robot_id, operator)
             self._hand_back(robot)
+            self._publish(robot)
 
     def command(self, robot_id: int, operator: str, command: TeleopCommand) -> None:
         """Stores the command for the next tick. It does not wait for a tick in progress (no fleet lock):
@@ -598,6 +657,7 @@ class Fleet:
                 robot.paused_from, robot.mode = robot.mode, "paused"
                 if robot.frame is not None:
                     robot.hold_target = robot.frame["hold"].copy()
+            self._publish(robot)
 
     def resume(self, robot_id: int) -> None:
         with self.lock:
@@ -611,6 +671,7 @@ class Fleet:
             robot.mode, robot.paused_from = back, None
             if back == "autonomous":
                 robot.hold_target = None
+            self._publish(robot)
 
     def reset(self, robot_id: int) -> None:
         with self.lock:
@@ -626,6 +687,7 @@ class Fleet:
                     robot.conn.recv()
             robot.frame, robot.mode = None, "autonomous"
             self._new_episode(robot)
+            self._publish(robot)
 
     def metrics(self) -> dict:
         with self.lock:

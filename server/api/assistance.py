@@ -63,7 +63,7 @@ def heartbeat(robot_id: int, fleet: FleetDep, who: Operator) -> AssistanceReques
 def release(robot_id: int, fleet: FleetDep, who: Operator) -> RobotSummary:
     """Hand the robot back to its policy."""
     _call(fleet.release, robot_id, who.name)
-    return summary(fleet.robot(robot_id))
+    return summary(fleet.view(robot_id))
 
 
 def _command(body: TeleopCommandIn) -> TeleopCommand:
@@ -99,8 +99,7 @@ async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
 
     async def send_state() -> None:
         while True:
-            with fleet.lock:
-                state = detail(fleet.robot(robot_id)).model_dump(mode="json")
+            state = detail(fleet.view(robot_id)).model_dump(mode="json")
             await websocket.send_json({"state": state})
             await asyncio.sleep(0.1)
 

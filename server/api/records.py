@@ -76,8 +76,7 @@ def download_segment(segment_id: int, sessions: SessionsDep, _: Viewer) -> FileR
 def policies(sessions: SessionsDep, fleet: FleetDep, _: Viewer) -> list[PolicyOut]:
     with sessions() as s:
         rows = list(s.scalars(select(PolicyVersion).order_by(PolicyVersion.id)))
-    with fleet.lock:
-        running = {}
-        for r in fleet.robots.values():
-            running.setdefault(r.slot.id, []).append(r.id)
+    running: dict[int, list[int]] = {}
+    for r in fleet.views():
+        running.setdefault(r.slot.id, []).append(r.id)
     return [PolicyOut.model_validate(row).model_copy(update={"robots": running.get(row.id, [])}) for row in rows]

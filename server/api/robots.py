@@ -6,7 +6,7 @@ from fastapi import APIRouter, HTTPException
 
 from server.api.deps import Admin, FleetDep, Viewer
 from server.api.schemas import OperatorView, PoseOut, RobotDetail, RobotSummary, UncertaintyOut
-from server.fleet import Fleet, FleetError, Robot
+from server.fleet import Fleet, FleetError, RobotView
 
 router = APIRouter(prefix="/robots", tags=["robots"])
 
@@ -15,7 +15,7 @@ def _pose(p, q) -> PoseOut:
     return PoseOut(position=[float(x) for x in p], quaternion=[float(x) for x in q])
 
 
-def _uncertainty(robot: Robot) -> UncertaintyOut | None:
+def _uncertainty(robot: RobotView) -> UncertaintyOut | None:
     r = robot.last_result
     if r is None:
         return None
@@ -33,7 +33,7 @@ def _uncertainty(robot: Robot) -> UncertaintyOut | None:
     )
 
 
-def summary(robot: Robot) -> RobotSummary:
+def summary(robot: RobotView) -> RobotSummary:
     return RobotSummary(
         id=robot.id,
         task=robot.task,
@@ -46,12 +46,12 @@ def summary(robot: Robot) -> RobotSummary:
     )
 
 
-def _bodies(robot: Robot) -> dict[str, PoseOut]:
+def _bodies(robot: RobotView) -> dict[str, PoseOut]:
     frame = robot.frame
     return {k: _pose(p, q) for k, (p, q) in frame["bodies"].items()} if frame else {}
 
 
-def detail(robot: Robot) -> RobotDetail:
+def detail(robot: RobotView) -> RobotDetail:
     frame = robot.frame
     return RobotDetail(
         **summary(robot).model_dump(),
@@ -69,47 +69,44 @@ def detail(robot: Robot) -> RobotDetail:
     )
 
 
-def _get(fleet: Fleet, robot_id: int) -> Robot:
+def _get(fleet: Fleet, robot_id: int) -> RobotView:
     try:
-        return fleet.robot(robot_id)
+        return fleet.view(robot_id)
     except FleetError as exc:
         raise HTTPException(exc.status, str(exc)) from exc
 
 
 @router.get("", response_model=list[RobotSummary])
 def list_robots(fleet: FleetDep, _: Viewer) -> list[RobotSummary]:
-    with fleet.lock:
-        return [summary(r) for r in fleet.robots.values()]
+    return [summary(r) for r in fleet.views()]
 
 
 @router.get("/{robot_id}", response_model=RobotDetail)
 def get_robot(robot_id: int, fleet: FleetDep, _: Viewer) -> RobotDetail:
-    with fleet.lock:
-        return detail(_get(fleet, robot_id))
+    return detail(_get(fleet, robot_id))
 
 
 @router.get("/{robot_id}/view", response_model=OperatorView)
 def operator_view(robot_id: int, fleet: FleetDep, _: Viewer) -> OperatorView:
     """What a human operator sees: the scene's body poses, the goal and the last denoising result."""
-    with fleet.lock:
-        robot = _get(fleet, robot_id)
-        frame = robot.frame
-        return OperatorView(
-            robot_id=robot.id,
-            task=robot.task,
-            mode=robot.mode,
-            pose=_pose(frame["pos"], frame["quat"]) if frame else None,
-            gripper=frame["gripper"] if frame else None,
-            bodies=_bodies(robot),
-            goal=frame["goal"] if frame else {},
-            last_uncertainty=_uncertainty(robot),
-        )
+    robot = _get(fleet, robot_id)
+    frame = robot.frame
+    return OperatorView(
+        robot_id=robot.id,
+        task=robot.task,
+        mode=robot.mode,
+        pose=_pose(frame["pos"], frame["quat"]) if frame else None,
+        gripper=frame["gripper"] if frame else None,
+        bodies=_bodies(robot),
+        goal=frame["goal"] if frame else {},
+        last_uncertainty=_uncertainty(robot),
+    )
 
 
 def _act(fleet: Fleet, robot_id: int, method: str) -> RobotSummary:
     try:
         getattr(fleet, method)(robot_id)
-        return summary(fleet.robot(robot_id))
+        return summary(fleet.view(robot_id))
     except FleetError as exc:
         raise HTTPException(exc.status, str(exc)) from exc
 
