@@ -50,7 +50,9 @@ class EpisodeRecord(Base):
     task: Mapped[str] = mapped_column(String(64), index=True)
     seed: Mapped[int] = mapped_column(Integer)
     policy_id: Mapped[int | None] = mapped_column(ForeignKey("policy_versions.id"), nullable=True)
-    outcome: Mapped[str | None] = mapped_column(String(16), nullable=True)  # success | timeout | faulted | reset
+    outcome: Mapped[str | None] = mapped_column(
+        String(16), nullable=True
+    )  # success | timeout | faulted | reset | stopped
     steps: Mapped[int] = mapped_column(Integer, default=0)
     assisted_steps: Mapped[int] = mapped_column(Integer, default=0)
     assistance_events: Mapped[int] = mapped_column(Integer, default=0)

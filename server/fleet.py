@@ -6,8 +6,9 @@ autonomous robots that are ready, one batched action sample and one batched unce
 evaluation per policy; then each ready robot gets its next action: the policy's, the operator's
 command, or a hold of the pose it had when it stopped (no drift).
 
-Modes: ``autonomous -> waiting -> teleop -> autonomous``, plus ``paused``, ``done`` (then the
-next episode starts) and ``faulted`` (the worker died; it is restarted with backoff).
+Modes: ``autonomous -> waiting -> teleop -> autonomous``, plus ``paused`` (not stepped: the scene
+and the episode clock are frozen), ``done`` (then the next episode starts) and ``faulted`` (the
+worker died; it is restarted with backoff).
 """
 
 from __future__ import annotations
@@ -252,6 +253,7 @@ class Fleet:
             for robot in self.robots.values():
                 self._close_segment(robot, "closed")
                 self._close_recorder(robot, None, robot.steps, "service stopped")
+                self._finish_episode_row(robot, "stopped")
                 if robot.conn is not None:
                     with contextlib.suppress(OSError, BrokenPipeError):
                         robot.conn.send(("close", None))
@@ -347,7 +349,7 @@ class Fleet:
         for robots in _by_slot(r for r in ready if r.mode == "teleop" and r.command is not None).values():
             self._teleop(robots)
         for r in ready:
-            if not r.awaiting and r.mode in ("waiting", "paused", "teleop"):  # hold the pose
+            if not r.awaiting and r.mode in ("waiting", "teleop"):  # hold the pose; paused robots are not stepped
                 self._send(r, r.hold_target if r.hold_target is not None else r.frame["hold"])
         for r in self.robots.values():
             self._publish(r)
