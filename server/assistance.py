@@ -33,6 +33,7 @@ class AssistanceRequest:
     lease_until: float | None = None
     claimed_at: float | None = None
     requeued: int = 0
+    expired_holder: str | None = None  # who held the lease that ran out last
 
     def priority(self, now: float, wait_scale: float = 10.0) -> float:
         """Higher first: U relative to its threshold, plus one unit per ``wait_scale`` seconds waited."""
@@ -107,7 +108,7 @@ class AssistanceQueue:
         with self._lock:
             for req in self._by_robot.values():
                 if req.holder is not None and req.lease_until is not None and req.lease_until <= now:
-                    req.holder, req.lease_until = None, None
+                    req.expired_holder, req.holder, req.lease_until = req.holder, None, None
                     req.requeued += 1
                     out.append(req)
         return out

@@ -146,7 +146,8 @@ class Fleet:
         self.env_steps = 0  # actions sent to workers, all robots, since start
         self.tick_periods: deque = deque(maxlen=2000)
         self._ctx = mp.get_context("spawn")
-        self.operator_busy: dict[str, float] = {}
+        self.operator_busy: dict[str, float] = {}  # seconds in control, per operator
+        self.operator_since: dict[str, float] = {}  # first claim, per operator
         self._build()
 
     # -- set-up -------------------------------------------------------------------------------------------
@@ -331,6 +332,9 @@ class Fleet:
     def tick(self) -> bool:
         """One control tick; returns whether any robot was ready (only those ticks are counted)."""
         for req in self.queue.expire():  # lease ran out: the robot holds, the request is queued again
+            if req.expired_holder and req.claimed_at is not None:
+                busy = self.operator_busy.get(req.expired_holder, 0.0)
+                self.operator_busy[req.expired_holder] = busy + time.monotonic() - req.claimed_at
             robot = self.robots.get(req.robot_id)
             if robot is not None and robot.mode == "teleop":
                 robot.mode, robot.command = "waiting", None
@@ -620,6 +624,7 @@ class Fleet:
         with self.lock:
             robot = self.robot(robot_id)
             req = self.queue.claim(robot_id, operator)
+            self.operator_since.setdefault(operator, time.monotonic())
             if robot.mode == "waiting":
                 robot.mode = "teleop"
                 robot.teleop_left = self.settings.budget_steps if self.settings.trigger_mode == "budgeted" else None
@@ -708,6 +713,10 @@ class Fleet:
                 "queue_wait_p50_s": float(np.quantile(waits, 0.5)) if len(waits) else None,
                 "queue_wait_p95_s": float(np.quantile(waits, 0.95)) if len(waits) else None,
                 "operator_busy_s": dict(self.operator_busy),
+                "operator_idle_s": {
+                    op: max(0.0, time.monotonic() - since - self.operator_busy.get(op, 0.0))
+                    for op, since in self.operator_since.items()
+                },
                 "return_on_human_effort": success / assisted if assisted else None,
                 "robots_by_mode": {m: sum(r.mode == m for r in robots) for m in MODES},
                 "ticks": self.ticks,

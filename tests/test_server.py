@@ -169,7 +169,8 @@ def test_the_operator_bot_completes_takeovers_through_the_api(service):
     segment = read_segment(path)
     assert segment.meta["operator"] == "bot" and len(segment.steps) == segs[0]["steps"]
     metrics = httpx.get(api + "/metrics/fleet", headers=_h(service, "viewer")).json()
-    assert metrics["queue_wait_p50_s"] is not None and "bot" in metrics["operator_busy_s"]
+    assert metrics["queue_wait_p50_s"] is not None and metrics["operator_busy_s"]["bot"] > 0
+    assert metrics["operator_idle_s"]["bot"] >= 0
 
 
 def test_admin_pauses_resumes_and_resets_a_robot(service):

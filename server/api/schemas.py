@@ -170,6 +170,7 @@ class FleetMetrics(BaseModel):
     queue_wait_p50_s: float | None
     queue_wait_p95_s: float | None
     operator_busy_s: dict[str, float]
+    operator_idle_s: dict[str, float]  # since the operator's first claim, not in control
     return_on_human_effort: float | None
     robots_by_mode: dict[str, int]
     ticks: int
