@@ -1,0 +1,63 @@
+import pytest
+
+from hitl.cli import main
+from server.auth import Principal, authenticate, create_token, revoke_token
+from server.db import make_engine, migrate, session_factory
+from server.settings import Settings, bundled_policy
+
+
+def test_settings_come_from_the_file_with_environment_and_flags_on_top(tmp_path, monkeypatch):
+    config = tmp_path / "fleet.toml"
+    config.write_text('port = 9001\ncontrol_hz = 5\n[[robots]]\ntask = "cup-stack"\ncount = 2\n')
+    s = Settings.load(config)
+    assert s.port == 9001 and s.control_hz == 5 and s.robots[0].count == 2
+    assert s.robots[0].policy_dir == bundled_policy("cup-stack") and s.robots[0].policy_dir.is_dir()
+    monkeypatch.setenv("HITL_PORT", "9002")
+    monkeypatch.setenv("DATABASE_URL", "sqlite:////tmp/elsewhere.db")
+    s = Settings.load(config)
+    assert s.port == 9002 and s.db_url == "sqlite:////tmp/elsewhere.db" and s.control_hz == 5
+    assert Settings.load(config, port=9003).port == 9003  # command-line flags win
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("port = [", "invalid TOML"),
+        ("bogus = 1", "bogus"),
+        ('[[robots]]\ntask = "lift-banana"', "unknown task 'lift-banana'"),
+        ("control_hz = -1", "control_hz"),
+        ('signal = "vibes"', "unknown signal 'vibes'"),
+        ("robots = []", "at least one robot"),
+    ],
+)
+def test_bad_config_files_get_errors_that_name_the_problem(tmp_path, text, match):
+    config = tmp_path / "bad.toml"
+    config.write_text(text)
+    with pytest.raises(ValueError, match=match):
+        Settings.load(config)
+
+
+def test_the_cli_reports_a_bad_config_without_a_traceback(tmp_path, capsys):
+    config = tmp_path / "bad.toml"
+    config.write_text("budget_steps = 0")
+    assert main(["serve", "--config", str(config)]) == 2
+    assert "budget_steps" in capsys.readouterr().err
+    assert main(["serve", "--config", str(tmp_path / "missing.toml")]) == 2
+
+
+def test_tokens_are_stored_hashed_and_can_be_revoked(tmp_path):
+    url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    migrate(url)
+    migrate(url)  # idempotent
+    sessions = session_factory(make_engine(url))
+    token = create_token(sessions, "alice", "operator")
+    assert authenticate(sessions, token) == Principal("alice", "operator")
+    assert authenticate(sessions, token + "x") is None and authenticate(sessions, None) is None
+    stored = b"".join(p.read_bytes() for p in tmp_path.glob("db.sqlite*"))  # the database and its WAL
+    assert token.encode() not in stored and b"alice" in stored
+    with pytest.raises(ValueError, match="already exists"):
+        create_token(sessions, "alice", "viewer")
+    with pytest.raises(ValueError, match="role"):
+        create_token(sessions, "bob", "root")
+    assert Principal("a", "admin").has("operator") and not Principal("v", "viewer").has("operator")
+    assert revoke_token(sessions, "alice") and authenticate(sessions, token) is None
