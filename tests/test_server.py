@@ -114,6 +114,7 @@ def test_takeover_round_trip_records_a_segment(service):
         ]
     )[0]
     assert seg["steps"] == 3 and seg["operator"] == "operator-1"
+    assert seg["started_at"].endswith(("+00:00", "Z"))  # times carry their zone
     data = httpx.get(f"{api}/segments/{seg['id']}/mcap", headers=_h(service, "viewer"))
     assert data.status_code == 200
     path = service.settings.data_dir / "downloaded.mcap"
