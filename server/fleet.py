@@ -288,6 +288,8 @@ class Fleet:
                     last = now
                 if period:
                     self._stop.wait(max(0.0, period - (now - start)))
+                elif not worked:  # nothing to step (all paused or restarting): do not spin
+                    self._stop.wait(0.01)
         finally:
             log.info("control loop stopped after %d ticks", self.ticks)
 
@@ -342,9 +344,9 @@ class Fleet:
         for r in self.robots.values():  # nothing older than a second is only in memory
             if r.segment is not None:
                 r.segment.maybe_flush()
-        ready = [r for r in self.robots.values() if self._collect(r)]
+        ready = [r for r in self.robots.values() if self._collect(r) and r.mode != "paused"]
         if not ready:
-            for r in self.robots.values():  # faults and restarts still show
+            for r in self.robots.values():  # faults, restarts and pauses still show
                 self._publish(r)
             return False
         self.ticks += 1
