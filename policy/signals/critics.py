@@ -171,8 +171,9 @@ class ThriftySignal(_ModelSignal):
         with torch.no_grad():
             novelty, _ = self._novelty(torch.as_tensor(data.val.obs))
             _, mean = self._novelty(torch.as_tensor(data.train.obs))
-            target = norm_action(self.policy, data.train.action).flatten(1)
-            discrepancy = ((mean - target) ** 2).sum(-1)
+            target = norm_action(self.policy, data.train.action[:, 0])
+            d = target.shape[-1]  # the action executed now, as compared at switch-back
+            discrepancy = ((mean[:, :d] - target) ** 2).sum(-1)
             roll = data.rollouts
             assert roll is not None
             acts = norm_action(self.policy, self._policy_actions(roll)[:, 0])
