@@ -77,7 +77,7 @@ def _cmd_train_signal(args: argparse.Namespace) -> int:
     return 0
 
 
-def _signals_for(policy, policy_dir: Path, names: list[str], quiet: bool) -> dict:
+def _signals_for(policy, policy_dir: Path, names: list[str]) -> dict:
     """Loads the named signals saved next to the policy; ``full-teleop`` and ``random`` need no files."""
     from policy.checkpoint import load_calibration
     from policy.signals import SignalError, load_signal, make_signal
@@ -111,18 +111,18 @@ def _names(value: str) -> list[str]:
 
 def _cmd_assist(args: argparse.Namespace) -> int:
     from policy.assisted import AssistConfig, run_assisted, summarize_assisted
-
-    policy, info = _load(args)
     from policy.signals import SignalError
 
+    policy, info = _load(args)
+
     names = _names(args.shadow) if args.shadow else []
-    signals = _signals_for(policy, args.policy, [args.driver], args.quiet)
+    signals = _signals_for(policy, args.policy, [args.driver])
     skipped = {}
     for name in dict.fromkeys(names):
         if name in signals:
             continue
         try:
-            signals.update(_signals_for(policy, args.policy, [name], args.quiet))
+            signals.update(_signals_for(policy, args.policy, [name]))
         except SignalError as exc:
             if args.shadow != "all":
                 raise
@@ -176,7 +176,7 @@ def _cmd_bench_signals(args: argparse.Namespace) -> int:
     signals, skipped = {}, {}
     for name in wanted:
         try:
-            signals.update(_signals_for(policy, args.policy, [name], args.quiet))
+            signals.update(_signals_for(policy, args.policy, [name]))
         except SignalError as exc:
             skipped[name] = str(exc)
     stac_steps = None
@@ -184,7 +184,7 @@ def _cmd_bench_signals(args: argparse.Namespace) -> int:
         stac_policy, stac_info = load_policy(args.stac_policy)
         skipped.pop("stac", None)
         try:
-            signals["stac"] = _signals_for(stac_policy, args.stac_policy, ["stac"], args.quiet)["stac"]
+            signals["stac"] = _signals_for(stac_policy, args.stac_policy, ["stac"])["stac"]
             stac_steps = policy_rollouts(
                 stac_policy, args.stac_policy, task, seeds, n_envs=min(4, len(seeds)), progress=not args.quiet
             )

@@ -266,3 +266,43 @@ def test_unknown_signal_and_missing_files_get_clear_errors(tiny, tmp_path):
         signal.calibrate(tiny[1])
     with pytest.raises(SignalError, match="rollouts"):
         signal.calibrate(CalibrationData(tiny[1].train, tiny[1].val))
+
+
+def test_train_signal_command_calibrates_on_the_policys_validation_split(tmp_path, capsys):
+    from hitl.cli import main
+    from policy.checkpoint import save_policy
+    from storage import keys
+    from storage.dataset import DatasetConfig, load_dataset
+    from storage.episodes import EpisodeWriter
+
+    rng = np.random.default_rng(0)
+    demos = tmp_path / "demos"
+    for i, n in enumerate([6, 7, 8, 9, 10]):
+        w = EpisodeWriter(demos / f"ep{i:02d}.mcap", {"task": "unit", "seed": i}, object_names=[])
+        for t in range(n):
+            act = np.r_[rng.uniform(-0.1, 0.1, 3), [0, 1, 0, -1, 0, 0], [-1.0]]
+            quat = np.array([1.0, 0, 0, 0])
+            w.write_step(t, rng.normal(size=OBS_DIM), act, act[:3], quat, 0.04, t == n - 1, keys.SOURCE_EXPERT, {})
+        w.finish(True, n, "success")
+    ds = load_dataset(demos, DatasetConfig())
+    train, val = ds.split()
+    torch.manual_seed(0)
+    policy = DiffusionPolicy(
+        DiffusionPolicyConfig(obs_dim=OBS_DIM, network="mlp", mlp_hidden=16, step_embed_dim=8, num_inference_steps=2)
+    )
+    policy.fit_normalizers(ds.obs, ds.actions)
+    split = {"train_episodes": [ds.names[i] for i in train], "val_episodes": [ds.names[i] for i in val]}
+    save_policy(policy, tmp_path / "policy", {"task": "lift-cube", "dataset": split})
+    args = ["train-signal", "--policy", str(tmp_path / "policy"), "--data", str(demos), "--quiet"]
+    assert main([*args, "--signal", "output-variance", "--set", "num_samples=4"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    val_steps = sum(
+        int(e - s)
+        for s, e, n in zip(ds.episode_starts, ds.episode_ends, ds.names, strict=True)
+        if n in split["val_episodes"]
+    )
+    assert out["calibration"]["samples"] == val_steps and np.isfinite(out["calibration"]["threshold"])
+    assert (tmp_path / "policy" / "signals" / "output-variance" / "config.json").is_file()
+    assert main([*args, "--signal", "nope"]) == 2
+    assert main([*args, "--signal", "output-variance", "--set", "num_samples=1"]) == 2
+    assert "num_samples" in capsys.readouterr().err
