@@ -1,9 +1,11 @@
 """Assisted rollouts: a driver signal decides when the simulated operator (the task's scripted
 expert) takes over; every other signal runs in shadow on the same trajectory.
 
-Per step and robot: the policy samples a chunk (robots under teleop too: that is the robot's
-would-be action for switch-back rules and for the signals); every signal scores every robot;
-the driver's ``wants_help`` (with the teleop flags) starts or ends takeovers.
+At each takeover the operator picks up where the scene stands (``Expert.resume``: an object
+already held is lifted, not dropped to start over). Per step and robot: the policy samples a
+chunk (robots under teleop too: that is the robot's would-be action for switch-back rules and
+for the signals); every signal scores every robot; the driver's ``wants_help`` (with the teleop
+flags) starts or ends takeovers.
 
 Modes, as in the paper: ``budgeted`` gives the operator ``budget`` steps per assistance event;
 ``continuous`` keeps the operator in control until the driver no longer wants help (for
@@ -127,7 +129,7 @@ def _run_wave(
             if not teleop[i] and ask[j]:  # the robot holds and asks; the operator answers this step
                 teleop[i], budget[i] = True, cfg.budget
                 episodes[i].events += 1
-                experts[i].reset(tasks[i], np.random.default_rng([seeds[i], episodes[i].events]))
+                experts[i].resume(tasks[i], np.random.default_rng([seeds[i], episodes[i].events]))
                 operator[j] = tasks[i].teleop(experts[i].act(tasks[i])).action
             elif teleop[i] and cfg.mode == "continuous" and not ask[j]:
                 teleop[i] = False

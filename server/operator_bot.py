@@ -32,6 +32,10 @@ class ViewTask:
         self._pos = np.asarray(pose["position"], dtype=np.float64)
         self._rot = Rotation.from_quat(pose["quaternion"]).as_matrix()
         self._privileged = {k: np.asarray(v) if isinstance(v, list) else v for k, v in view["goal"].items()}
+        self._gripper = float(view["gripper"]) if view.get("gripper") is not None else 0.08
+
+    def gripper_opening(self) -> float:
+        return self._gripper
 
     def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:
         return self._pos.copy(), self._rot.copy()
@@ -68,7 +72,7 @@ class OperatorBot:
         view = self._get(f"/robots/{robot_id}/view")
         task = ViewTask(view)
         expert = make_expert(task.name)
-        expert.reset(task, np.random.default_rng([seed, robot_id]))
+        expert.resume(task, np.random.default_rng([seed, robot_id]))  # pick up where the scene stands
         steps, last_beat = 0, time.monotonic()
         try:
             while steps < max_steps:

@@ -21,6 +21,7 @@ from sim.rotations import wrap_angle
 from sim.spaces import TeleopCommand
 
 OPEN, CLOSED = -1.0, 1.0
+GRIPPED = 0.07  # finger gap (m) under which the gripper counts as closed (0.08 is fully open)
 # Gripper pointing down (grip-site z = world -z) at yaw 0. The Panda's fingers
 # close along the site's x axis, so a grasped bar lies along the site's y axis;
 # "yaw" is the heading of that y axis. At yaw 0 the fingers close along world y.
@@ -89,6 +90,20 @@ class Expert:
         self.phases = self.plan(task, rng)
         self._i, self._steps_in_phase, self._pause_left = 0, 0, 0
 
+    def resume(self, task: Task, rng: np.random.Generator) -> None:
+        """Takes over mid-episode: plans as ``reset`` does, then skips the phases whose work the scene
+        shows is done (an object already held, a gripper already at the grasp), judged only from what
+        an operator sees: the end-effector pose, the gripper opening and the scene."""
+        self.reset(task, rng)
+        self._i = min(self.start_phase(task), len(self.phases) - 1)
+
+    def start_phase(self, task: Task) -> int:
+        """Index of the first phase still to do; 0 unless an expert knows better."""
+        return 0
+
+    def _index(self, name: str) -> int:
+        return next(i for i, p in enumerate(self.phases) if p.name == name)
+
     @property
     def phase(self) -> str:
         return self.phases[min(self._i, len(self.phases) - 1)].name
@@ -154,12 +169,23 @@ class LiftExpert(Expert):
             grasped.setdefault("p", t.ee_pose()[0])
             return grasped["p"] + [0, 0, lift_h], yaw
 
+        self._approach_h = approach_h
         return [
             Phase("approach", above, OPEN, tol=0.012, pause=int(rng.integers(0, 5))),
             Phase("descend", at, OPEN, tol=0.006, max_steps=60),
             Phase("close", lambda t: (t.ee_pose()[0], yaw), CLOSED, tol=np.inf, pause=int(rng.integers(6, 10))),
             Phase("lift", up, CLOSED, tol=0.01),
         ]
+
+    def start_phase(self, task: Task) -> int:
+        s = task.privileged()
+        pos = task.ee_pose()[0]
+        closed = task.gripper_opening() < GRIPPED
+        if closed and s["object_pos"][2] > s["rest_z"] + 0.01:  # already holding it off the table
+            return self._index("lift")
+        if not closed and _over(pos, s["grasp_point"], self._approach_h):
+            return self._index("descend")
+        return 0
 
 
 class CupStackExpert(Expert):
@@ -204,6 +230,7 @@ class CupStackExpert(Expert):
             return p + [0, 0, retreat], None
 
         hold = lambda t: (t.ee_pose()[0], None)  # noqa: E731
+        self._approach_h = approach_h
         return [
             Phase("approach", above_green, OPEN, tol=0.012, pause=int(rng.integers(0, 5))),
             Phase("descend", at_green, OPEN, tol=0.006, max_steps=60),
@@ -214,6 +241,16 @@ class CupStackExpert(Expert):
             Phase("release", hold, OPEN, tol=np.inf, pause=int(rng.integers(5, 8))),
             Phase("retreat", retreat_up, OPEN, tol=0.01),
         ]
+
+    def start_phase(self, task: Task) -> int:
+        s = task.privileged()
+        pos = task.ee_pose()[0]
+        closed = task.gripper_opening() < GRIPPED
+        if closed and s["green_bottom_z"] > s["table_z"] + 0.02:  # carrying the green cup
+            return self._index("carry")
+        if not closed and _over(pos, s["green_grasp_point"], self._approach_h):
+            return self._index("descend")
+        return 0
 
 
 class OpenDrawerExpert(Expert):
@@ -247,6 +284,7 @@ class OpenDrawerExpert(Expert):
             return p + t.privileged()["pull_axis"] * pull, yaw
 
         hold = lambda t: (t.ee_pose()[0], yaw)  # noqa: E731
+        self._drawer, self._approach_h = drawer, approach_h
         return [
             Phase("approach", above, OPEN, tol=0.015, pause=int(rng.integers(0, 5))),
             Phase("align", near, OPEN, tol=0.01),
@@ -254,3 +292,20 @@ class OpenDrawerExpert(Expert):
             Phase("close", hold, CLOSED, tol=np.inf, pause=int(rng.integers(6, 10))),
             Phase("pull", pull_out, CLOSED, tol=0.01, max_steps=120),
         ]
+
+    def start_phase(self, task: Task) -> int:
+        s = task.privileged()
+        pos = task.ee_pose()[0]
+        handle = np.asarray(s["handles"])[self._drawer]
+        closed = task.gripper_opening() < GRIPPED
+        if closed and np.linalg.norm(pos - handle) < 0.02:  # holding the intended handle
+            return self._index("pull")
+        if not closed and _over(pos, handle, self._approach_h):
+            return self._index("descend")
+        return 0
+
+
+def _over(pos: np.ndarray, target: np.ndarray, height: float) -> bool:
+    """Within 1.5 cm of ``target`` horizontally and at most ``height`` + 1 cm above it."""
+    pos, target = np.asarray(pos), np.asarray(target)
+    return bool(np.linalg.norm(pos[:2] - target[:2]) < 0.015 and pos[2] - target[2] < height + 0.01)

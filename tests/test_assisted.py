@@ -54,3 +54,24 @@ def test_full_teleop_in_continuous_mode_lets_the_operator_finish_the_task():
     ep = episodes[0]
     assert ep.success and all(ep.operator) and ep.events == 1
     assert TriggerState.autonomous([1]).teleop.tolist() == [False]
+
+
+def test_an_operator_taking_over_picks_up_where_the_scene_stands(task_cache):
+    from sim.registry import make_expert
+
+    task = task_cache("lift-cube")
+    task.reset(3)
+    fresh = make_expert("lift-cube")
+    fresh.resume(task, np.random.default_rng(0))
+    assert fresh.phase == "approach"  # nothing done yet
+    expert = make_expert("lift-cube")
+    expert.reset(task, np.random.default_rng(1))
+    for _ in range(200):
+        if expert.phase == "lift" and task.privileged()["object_pos"][2] > task.privileged()["rest_z"] + 0.02:
+            break
+        task.step(task.teleop(expert.act(task)).action)
+    else:
+        raise AssertionError("the expert did not get the cube off the table")
+    late = make_expert("lift-cube")
+    late.resume(task, np.random.default_rng(2))
+    assert late.phase == "lift"  # keeps holding and lifts, instead of opening to start over
