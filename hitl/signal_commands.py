@@ -78,22 +78,15 @@ def _cmd_train_signal(args: argparse.Namespace) -> int:
 
 
 def _signals_for(policy, policy_dir: Path, names: list[str]) -> dict:
-    """Loads the named signals saved next to the policy; ``full-teleop`` and ``random`` need no files."""
-    from policy.checkpoint import load_calibration
-    from policy.signals import SignalError, load_signal, make_signal
+    """The named signals as saved next to the policy (``load_signal``)."""
+    from policy.signals import SignalError, load_signal
 
     out = {}
     for name in names:
         try:
             out[name] = load_signal(policy, policy_dir, name)
         except SignalError as exc:
-            if name in ("full-teleop", "random"):  # nothing to learn: defaults
-                out[name] = make_signal(name, policy)
-            elif name == "denoising" and load_calibration(policy_dir) is not None:  # from `hitl calibrate`
-                out[name] = make_signal(name, policy)
-                out[name].calibration = {"threshold": float(load_calibration(policy_dir)["threshold"])}
-            else:
-                raise SignalError(f"{name}: {exc}") from exc
+            raise SignalError(f"{name}: {exc}") from exc
     return out
 
 
@@ -172,36 +165,21 @@ def _cmd_bench_signals(args: argparse.Namespace) -> int:
     task = args.task or info["task"]
     seeds = list(range(args.seed, args.seed + args.episodes))
     steps = policy_rollouts(policy, args.policy, task, seeds, n_envs=min(4, len(seeds)), progress=not args.quiet)
-    wanted = _names(args.signals)
     signals, skipped = {}, {}
-    for name in wanted:
+    for name in _names(args.signals):
+        # stac needs a chunked policy: it may come from --stac-policy; states are the task's either way
+        owner, folder = (
+            (load_policy(args.stac_policy)[0], args.stac_policy)
+            if name == "stac" and args.stac_policy
+            else (policy, args.policy)
+        )
         try:
-            signals.update(_signals_for(policy, args.policy, [name]))
+            signals.update(_signals_for(owner, folder, [name]))
         except SignalError as exc:
             skipped[name] = str(exc)
-    stac_steps = None
-    if args.stac_policy and "stac" in wanted:
-        stac_policy, stac_info = load_policy(args.stac_policy)
-        skipped.pop("stac", None)
-        try:
-            signals["stac"] = _signals_for(stac_policy, args.stac_policy, ["stac"])["stac"]
-            stac_steps = policy_rollouts(
-                stac_policy, args.stac_policy, task, seeds, n_envs=min(4, len(seeds)), progress=not args.quiet
-            )
-        except SignalError as exc:
-            signals.pop("stac", None)
-            skipped["stac"] = str(exc)
-    result = bench_signals(
-        {k: v for k, v in signals.items() if k != "stac"}, steps, args.robots, args.repeats, not args.quiet
-    )
-    if "stac" in signals and stac_steps is not None:
-        result["signals"]["stac"] = bench_signals(
-            {"stac": signals["stac"]}, stac_steps, args.robots, args.repeats, False
-        )["signals"]["stac"] | {"policy": str(args.stac_policy)}
-        base = result["signals"].get("denoising")
-        if base:
-            s = result["signals"]["stac"]
-            s["cost_over_denoising"] = s["ms_per_robot_step"] / base["ms_per_robot_step"]
+    result = bench_signals(signals, steps, args.robots, args.repeats, not args.quiet)
+    if "stac" in result["signals"] and args.stac_policy:
+        result["signals"]["stac"]["policy"] = str(args.stac_policy)
     out = {
         "benchmark": "signals",
         "policy": str(args.policy),

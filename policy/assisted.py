@@ -74,10 +74,6 @@ class AssistedEpisode:
         }
 
 
-def _signal_input(hist, current, ids, chunks, operator) -> SignalInput:
-    return SignalInput(hist, current, ids, action=chunks, operator_action=operator)
-
-
 def _run_wave(
     policy: DiffusionPolicy,
     tasks: list[Task],
@@ -114,7 +110,7 @@ def _run_wave(
         for j, i in enumerate(live):
             if teleop[i]:
                 operator[j] = tasks[i].teleop(experts[i].act(tasks[i])).action
-        batch = _signal_input(hist, current, ids[live], chunks, torch.as_tensor(operator))
+        batch = SignalInput(hist, current, ids[live], action=chunks, operator_action=torch.as_tensor(operator))
         state = TriggerState(ids[live], teleop[live].copy())
         decisions = {}
         for name, signal in signals.items():

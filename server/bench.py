@@ -64,8 +64,14 @@ def raw_throughput(task: str, n: int, seconds: float) -> float:
     return total / seconds
 
 
-def fleet_throughput(task: str, n: int, seconds: float, data_dir: Path) -> dict:
-    settings = Settings(data_dir=data_dir, control_hz=0, robots=[RobotGroup(task=task, count=n)], lease_seconds=3600)
+def fleet_throughput(task: str, n: int, seconds: float, data_dir: Path, torch_threads: int = 1) -> dict:
+    settings = Settings(
+        data_dir=data_dir,
+        control_hz=0,
+        robots=[RobotGroup(task=task, count=n)],
+        lease_seconds=3600,
+        torch_threads=torch_threads,
+    )
     migrate(settings.db_url)
     fleet = Fleet(settings, session_factory(make_engine(settings.db_url)))
     fleet.start()
@@ -116,13 +122,21 @@ def fleet_throughput(task: str, n: int, seconds: float, data_dir: Path) -> dict:
     }
 
 
-def bench_fleet(task: str, sizes: list[int], seconds: float = 10.0, progress: bool = True) -> dict:
+def bench_fleet(
+    task: str, sizes: list[int], seconds: float = 10.0, progress: bool = True, torch_threads: int = 1
+) -> dict:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in tqdm(sizes, desc="bench fleet", disable=not progress):
             raw = raw_throughput(task, n, seconds)
-            fleet = fleet_throughput(task, n, seconds, Path(tmp) / f"n{n}")
+            fleet = fleet_throughput(task, n, seconds, Path(tmp) / f"n{n}", torch_threads)
             rows.append(
                 {"robots": n, "raw_env_steps_per_s": raw, **fleet, "share_of_raw": fleet["env_steps_per_s"] / raw}
             )
-    return {"benchmark": "fleet", "task": task, "seconds_per_measurement": seconds, "sizes": rows}
+    return {
+        "benchmark": "fleet",
+        "task": task,
+        "seconds_per_measurement": seconds,
+        "server_torch_threads": torch_threads,
+        "sizes": rows,
+    }

@@ -19,7 +19,7 @@ import multiprocessing as mp
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from datetime import UTC, datetime
 from multiprocessing.connection import wait
 from pathlib import Path
@@ -28,11 +28,9 @@ import numpy as np
 import torch
 from sqlalchemy.orm import sessionmaker
 
-from policy.checkpoint import load_calibration, load_policy
-from policy.signals import SignalError, load_signal, make_signal
+from policy.checkpoint import load_policy
+from policy.signals import SignalError, load_signal
 from policy.signals.base import SignalInput, TriggerState
-from policy.signals.registry import signal_dir
-from policy.signals.sampling import DenoisingSignal
 from server.assistance import AssistanceQueue, QueueError
 from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
 from server.settings import Settings
@@ -156,9 +154,6 @@ class Fleet:
         if key in self.slots:
             return self.slots[key]
         policy, info = load_policy(path)
-        calibration = load_calibration(path)
-        if calibration is None:
-            raise FleetError(500, f"policy {path} has no calibration.json: run `hitl calibrate --policy {path}`")
         obs_dim = make_task(task).obs_spec.dim
         if policy.config.obs_dim != obs_dim:
             raise FleetError(
@@ -166,13 +161,6 @@ class Fleet:
             )
         signals = {}
         for name in dict.fromkeys([self.settings.signal, "denoising", *self.settings.shadow_signals]):
-            if name == "denoising" and not signal_dir(path, name).is_dir():
-                signals[name] = DenoisingSignal(policy)  # threshold from `hitl calibrate`
-                signals[name].calibration = {"threshold": float(calibration["threshold"])}
-                continue
-            if name in ("full-teleop", "random") and not signal_dir(path, name).is_dir():
-                signals[name] = make_signal(name, policy)  # nothing to learn: defaults
-                continue
             try:
                 signals[name] = load_signal(policy, path, name)
             except (SignalError, ValueError) as exc:
@@ -181,7 +169,7 @@ class Fleet:
             row = s.query(PolicyVersion).filter_by(path=key).one_or_none()
             if row is None:
                 row = PolicyVersion(
-                    name=path.name, path=key, task=info.get("task", task), threshold=calibration["threshold"]
+                    name=path.name, path=key, task=info.get("task", task), threshold=signals["denoising"].threshold
                 )
                 s.add(row)
                 s.commit()
@@ -439,7 +427,7 @@ class Fleet:
                 robot.frame["quat"],
                 u,
                 shadow={name: float(sc.value[j]) for name, sc in scores.items() if name != "denoising"},
-                field=_world_field(slot, scores["denoising"].detail.robot(j)),
+                field=_world_field(slot, robot.last_result),  # the field just remembered
             )
         robot.assisted_steps += 1
         self._send(robot, action, keys.SOURCE_OPERATOR)
@@ -587,23 +575,8 @@ class Fleet:
     # -- what readers see -------------------------------------------------------------------------------------
     def _publish(self, robot: Robot) -> None:
         """A consistent copy of what the API shows, so readers never wait for a tick in progress."""
-        robot.view = RobotView(
-            id=robot.id,
-            task=robot.task,
-            slot=robot.slot,
-            mode=robot.mode,
-            episode_id=robot.episode_id,
-            steps=robot.steps,
-            u_history=tuple(robot.u_history),
-            frame=robot.frame,
-            last_result=robot.last_result,
-            episodes_done=robot.episodes_done,
-            successes=robot.successes,
-            assisted_steps=robot.assisted_steps,
-            events=robot.events,
-            restarts=robot.restarts,
-            fault=robot.fault,
-        )
+        values = {f.name: getattr(robot, f.name) for f in fields(RobotView)}
+        robot.view = RobotView(**values | {"u_history": tuple(robot.u_history)})
 
     def view(self, robot_id: int) -> RobotView:
         robot = self.robot(robot_id)
@@ -732,12 +705,12 @@ def _by_slot(robots) -> dict[int, list[Robot]]:
     return out
 
 
-def _world_field(slot: PolicySlot, result) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def _world_field(slot: PolicySlot, result: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """The probe samples in metres (world frame) and the denoising directions (-ε, rescaled per axis
     from the normalized action space), for the segment's arrows; the longest arrow is 2 cm."""
     norm = slot.policy.action_normalizer
     low, span = norm.low[:3].numpy().astype(np.float64), norm.span[:3].numpy().astype(np.float64)
-    samples = result.samples * span + low
-    vectors = -result.vectors * span
+    samples = result["samples"] * span + low
+    vectors = -result["vectors"] * span
     longest = float(np.linalg.norm(vectors, axis=1).max()) if len(vectors) else 0.0
-    return samples, vectors, result.labels, 0.02 / longest if longest > 0 else 0.0
+    return samples, vectors, result["labels"], 0.02 / longest if longest > 0 else 0.0

@@ -67,16 +67,6 @@ class SignalInput:
     def __len__(self) -> int:
         return self.obs.shape[0]
 
-    def subset(self, rows: np.ndarray) -> SignalInput:
-        idx = torch.as_tensor(rows, dtype=torch.long)
-        return SignalInput(
-            self.obs[idx],
-            self.current[idx],
-            self.robot_ids[rows],
-            None if self.action is None else self.action[idx],
-            None if self.operator_action is None else self.operator_action[idx],
-        )
-
 
 @dataclass
 class Scores:

@@ -15,6 +15,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from policy.bench import _time
 from policy.diffusion_policy import DiffusionPolicy
 from policy.signals.aux import EnsembleMLP
 from policy.signals.base import AssistanceSignal, SignalInput, StepSet
@@ -104,10 +105,4 @@ def bench_signals(
 
 def _measure_ddim(policy: DiffusionPolicy, obs: torch.Tensor, repeats: int) -> float:
     with torch.no_grad():
-        policy.predict_action_chunk(obs)
-        times = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            policy.predict_action_chunk(obs)
-            times.append(time.perf_counter() - t)
-    return float(np.median(times)) * 1e3 / obs.shape[0]
+        return _time(lambda: policy.predict_action_chunk(obs), repeats) * 1e3 / obs.shape[0]

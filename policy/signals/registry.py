@@ -12,6 +12,7 @@ from pathlib import Path
 
 from safetensors.torch import load_file, save_file
 
+from policy.checkpoint import CALIBRATION, load_calibration
 from policy.diffusion_policy import DiffusionPolicy
 from policy.signals.base import AssistanceSignal, SignalConfig, SignalError
 from policy.signals.critics import HulaSignal, ThriftySignal
@@ -79,11 +80,23 @@ def save_signal(signal: AssistanceSignal, policy_dir: str | Path, info: dict | N
 
 
 def load_signal(policy: DiffusionPolicy, policy_dir: str | Path, name: str) -> AssistanceSignal:
-    """The calibrated signal saved by ``hitl train-signal`` (SignalError naming the missing file)."""
+    """The calibrated signal saved by ``hitl train-signal`` (SignalError naming the missing file).
+
+    Without a signal folder, ``full-teleop`` and ``random`` (nothing to learn) come with their
+    defaults, and ``denoising`` takes its threshold from ``hitl calibrate``'s calibration.json.
+    """
     folder = signal_dir(policy_dir, name)
     path = folder / CONFIG
+    if not path.is_file() and name in ("full-teleop", "random"):
+        return make_signal(name, policy)
+    calibration = load_calibration(policy_dir) if not path.is_file() and name == "denoising" else None
+    if calibration is not None:
+        signal = make_signal(name, policy)
+        signal.calibration = {"threshold": float(calibration["threshold"]), "source": CALIBRATION}
+        return signal
     if not path.is_file():
-        raise SignalError(f"{path} not found: run `hitl train-signal --policy {policy_dir} --signal {name}`")
+        also = f" (or `hitl calibrate --policy {policy_dir}`)" if name == "denoising" else ""
+        raise SignalError(f"{path} not found: run `hitl train-signal --policy {policy_dir} --signal {name}`{also}")
     try:
         doc = json.loads(path.read_text())
     except json.JSONDecodeError as exc:

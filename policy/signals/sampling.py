@@ -52,13 +52,8 @@ def batched_scores(
     return np.concatenate(out) if out else np.zeros(0)
 
 
-def _input(steps: StepSet, rows: np.ndarray, ids: np.ndarray, with_action: bool = False) -> SignalInput:
-    return SignalInput(
-        torch.as_tensor(steps.obs[rows]),
-        torch.as_tensor(steps.current[rows]),
-        ids,
-        action=torch.as_tensor(steps.action[rows]) if with_action else None,
-    )
+def _input(steps: StepSet, rows: np.ndarray, ids: np.ndarray) -> SignalInput:
+    return SignalInput(torch.as_tensor(steps.obs[rows]), torch.as_tensor(steps.current[rows]), ids)
 
 
 def subsample(steps: StepSet, limit: int, seed: int) -> StepSet:

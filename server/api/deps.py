@@ -10,7 +10,6 @@ from sqlalchemy.orm import sessionmaker
 
 from server.auth import Principal, authenticate
 from server.fleet import Fleet
-from server.settings import Settings
 
 _bearer = HTTPBearer(auto_error=False)
 
@@ -23,13 +22,8 @@ def get_sessions(request: Request) -> sessionmaker:
     return request.app.state.sessions
 
 
-def get_settings(request: Request) -> Settings:
-    return request.app.state.settings
-
-
 FleetDep = Annotated[Fleet, Depends(get_fleet)]
 SessionsDep = Annotated[sessionmaker, Depends(get_sessions)]
-SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
 def _principal(request: Request, creds: HTTPAuthorizationCredentials | None) -> Principal:
