@@ -69,7 +69,16 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
     sizes = [int(x) for x in args.robots.split(",") if x.strip()]
     if not sizes or any(n < 1 or n > 64 for n in sizes):
         raise ValueError(f"--robots must be a comma-separated list of sizes in 1..64, got {args.robots!r}")
-    result = bench_fleet(args.task, sizes, args.seconds, progress=not args.quiet, torch_threads=args.torch_threads)
+    if not (0 < args.command_hz <= 1000):
+        raise ValueError(f"--command-hz must be in (0, 1000], got {args.command_hz!r}")
+    result = bench_fleet(
+        args.task,
+        sizes,
+        args.seconds,
+        progress=not args.quiet,
+        torch_threads=args.torch_threads,
+        command_hz=args.command_hz,
+    )
     print(json.dumps(result, indent=None if args.json else 2))
     return 0
 
@@ -94,6 +103,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--task", default="lift-cube")
     q.add_argument("--seconds", type=float, default=10.0)
     q.add_argument("--torch-threads", type=int, default=1, help="server-side torch threads (the setting)")
+    q.add_argument("--command-hz", type=float, default=30.0, help="the bench operator's command stream rate")
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_fleet)

@@ -7,6 +7,7 @@ dimension happens inside, with the statistics stored as buffers.
 
 from __future__ import annotations
 
+import warnings
 from collections import deque
 
 import numpy as np
@@ -111,8 +112,50 @@ class DiffusionPolicy(nn.Module):
         cond = self._obs_cond(obs)
         if isinstance(k, int):
             k = torch.full((x.shape[0],), k, dtype=torch.long, device=x.device)
-        eps = self.net(x.float(), k, cond)
+        eps = self._eps(x.float(), k, cond)
         return eps[:, 0] if squeeze else eps
+
+    # -- serving: a traced copy of the noise network ---------------------------------------
+    def freeze_for_inference(self) -> None:
+        """Traces the noise network with TorchScript and freezes its weights, for no-grad calls in
+        eval mode (DDIM and probes). Same outputs; on CPU it removes most of the per-module Python
+        dispatch that dominates at fleet batch sizes. Switching to training mode, loading weights
+        or moving the policy drops the traced copy (it holds the weights it was traced with)."""
+        if self.training:
+            raise RuntimeError("freeze_for_inference needs eval mode (call .eval() first)")
+        cfg = self.config
+        x = torch.zeros((2, 1, cfg.action_horizon, cfg.action_dim))
+        k = torch.zeros(2, dtype=torch.long)
+        cond = torch.zeros((2, self.obs_encoder.out_dim))
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks become constants
+            # TorchScript is deprecated in favour of torch.compile, which compiles for 45-70 s per policy
+            # here and again for new batch shapes (docs/service.md); tracing is instant
+            warnings.simplefilter("ignore", DeprecationWarning)
+            traced = torch.jit.freeze(torch.jit.trace(self.net, (x, k, cond), check_trace=False))
+        self.__dict__["_traced"] = traced  # not a submodule: never in the state dict
+
+    def _eps(self, x: torch.Tensor, k: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        traced = self.__dict__.get("_traced")
+        if traced is not None and not self.training and not torch.is_grad_enabled():
+            return traced(x, k, cond)
+        return self.net(x, k, cond)
+
+    def _drop_traced(self) -> None:
+        self.__dict__.pop("_traced", None)
+
+    def train(self, mode: bool = True) -> DiffusionPolicy:
+        if mode:
+            self._drop_traced()
+        return super().train(mode)
+
+    def load_state_dict(self, *args, **kwargs):
+        self._drop_traced()
+        return super().load_state_dict(*args, **kwargs)
+
+    def _apply(self, fn, *args, **kwargs):
+        self._drop_traced()
+        return super()._apply(fn, *args, **kwargs)
 
     # -- inference ---------------------------------------------------------------------
     @torch.no_grad()
@@ -124,7 +167,7 @@ class DiffusionPolicy(nn.Module):
         x = torch.randn((b, 1, cfg.action_horizon, cfg.action_dim), generator=generator or self._generator)
         steps = self.schedule.ddim_timesteps(cfg.num_inference_steps)
         for i, k in enumerate(steps):
-            eps = self.net(x, torch.full((b,), k, dtype=torch.long), cond)
+            eps = self._eps(x, torch.full((b,), k, dtype=torch.long), cond)
             x = self.schedule.ddim_step(x, eps, k, steps[i + 1] if i + 1 < len(steps) else -1)
         return self.action_normalizer.unnormalize(x[:, 0])
 

@@ -4,10 +4,15 @@ For each fleet size N, measured in the same run:
 
 - raw: N bare worker processes stepping their task with hold actions as fast as they can (the
   physics limit of this machine);
-- fleet: the fleet runtime free-running (no control-rate sleep), with one robot under teleop
-  receiving a command every tick from another thread: ticks/s, tick period p50/p99, total env
-  steps/s and command-to-applied latency p50/p99 (from the command's arrival at the fleet to the
-  tick that sends it to the worker);
+- fleet: the fleet runtime free-running (no control-rate sleep). No robot asks for help
+  (``assistance = false``: a waiting robot only holds, which would make the fleet cheaper the
+  longer it runs), so every robot but one is driven by the policy and scored at every step.
+  Robot 0 is under teleop (taken over again at each new episode) and receives operator commands
+  at ``command_hz`` from another thread, as from a teleop device (the newest command wins).
+  Reported: ticks/s, tick period p50/p99, total env steps/s, the control loop's CPU per env
+  step, the teleoperated robot's action period (its control period: a tick moves only the
+  robots whose physics has answered) and command-to-applied latency p50/p99 (from the command's
+  arrival at the fleet to the tick that sends it to the worker);
 - the fleet's share of the raw throughput.
 
 The policy and uncertainty are the real ones (the bundled policy of each task).
@@ -64,13 +69,28 @@ def raw_throughput(task: str, n: int, seconds: float) -> float:
     return total / seconds
 
 
-def fleet_throughput(task: str, n: int, seconds: float, data_dir: Path, torch_threads: int = 1) -> dict:
+def _take_over(fleet: Fleet) -> None:
+    """Robot 0 asks for help and the bench operator claims it, in continuous mode."""
+    with fleet.lock:
+        r0 = fleet.robots[0]
+        if r0.frame is None:
+            raise FleetError(409, "robot 0 is between episodes")
+        r0.mode, r0.hold_target = "waiting", r0.frame["hold"].copy()
+        fleet.queue.open(0, 1.0, 1.0, "benchmark")
+    fleet.claim(0, "bench")
+    fleet.robots[0].teleop_left = None
+
+
+def fleet_throughput(
+    task: str, n: int, seconds: float, data_dir: Path, torch_threads: int = 1, command_hz: float = 30.0
+) -> dict:
     settings = Settings(
         data_dir=data_dir,
         control_hz=0,
         robots=[RobotGroup(task=task, count=n)],
         lease_seconds=3600,
         torch_threads=torch_threads,
+        assistance=False,  # every other robot stays under the policy: the full per-step cost, all the time
     )
     migrate(settings.db_url)
     fleet = Fleet(settings, session_factory(make_engine(settings.db_url)))
@@ -80,18 +100,15 @@ def fleet_throughput(task: str, n: int, seconds: float, data_dir: Path, torch_th
         deadline = time.monotonic() + 120
         while any(r.frame is None for r in fleet.robots.values()) and time.monotonic() < deadline:
             time.sleep(0.2)
-        with fleet.lock:  # robot 0 asks for help and a bench operator drives it
-            r0 = fleet.robots[0]
-            r0.mode, r0.hold_target = "waiting", r0.frame["hold"].copy()
-            fleet.queue.open(0, 1.0, 1.0, "benchmark")
-        fleet.claim(0, "bench")
-        fleet.robots[0].teleop_left = None  # continuous for the whole measurement
+        _take_over(fleet)
 
-        def operator() -> None:
-            while not stop.is_set():
-                with contextlib.suppress(QueueError, FleetError):  # the robot may be between episodes
+        def operator() -> None:  # a teleop device streaming at command_hz; the newest command wins
+            while not stop.wait(1.0 / command_hz):
+                try:
                     fleet.command(0, "bench", TeleopCommand((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), -1.0))
-                time.sleep(0.005)
+                except (QueueError, FleetError):  # its episode ended: take the next one over too
+                    with contextlib.suppress(QueueError, FleetError):
+                        _take_over(fleet)
 
         threading.Thread(target=operator, daemon=True).start()
         time.sleep(1.0)
@@ -100,15 +117,20 @@ def fleet_throughput(task: str, n: int, seconds: float, data_dir: Path, torch_th
             ticks0 = fleet.ticks
             fleet.tick_periods.clear()
             fleet.robots[0].latencies.clear()
+            fleet.robots[0].action_periods.clear()
+            cpu0 = fleet.loop_cpu_seconds
         time.sleep(seconds)
         with fleet.lock:
             steps = fleet.env_steps - steps0
             ticks = fleet.ticks - ticks0
             periods = np.array(fleet.tick_periods)
             lat = np.array(fleet.robots[0].latencies)
+            teleop_periods = np.array(fleet.robots[0].action_periods)
+            cpu = fleet.loop_cpu_seconds - cpu0
     finally:
         stop.set()
         fleet.stop()
+    teleop_p50 = float(np.quantile(teleop_periods, 0.5) * 1e3) if len(teleop_periods) else None
     return {
         "ticks_per_s": ticks / seconds,
         "tick_period_p50_ms": float(np.quantile(periods, 0.5) * 1e3) if len(periods) else None,
@@ -117,19 +139,31 @@ def fleet_throughput(task: str, n: int, seconds: float, data_dir: Path, torch_th
         "command_latency_p50_ms": float(np.quantile(lat, 0.5) * 1e3) if len(lat) else None,
         "command_latency_p99_ms": float(np.quantile(lat, 0.99) * 1e3) if len(lat) else None,
         "commands_applied": int(len(lat)),
-        # target: command-to-applied p99 within one control period (here the median tick) + 20 ms
-        "latency_target_ms": float(np.quantile(periods, 0.5) * 1e3 + 20) if len(periods) else None,
+        "actions_per_robot_per_s": steps / seconds / n,
+        # CPU the control loop spent per env step: policy, signals and bookkeeping (one thread)
+        "loop_cpu_ms_per_env_step": cpu / max(steps, 1) * 1e3,
+        "loop_cpu_share": cpu / seconds,
+        "teleop_action_period_p50_ms": teleop_p50,
+        # target: command-to-applied p99 within one control period + 20 ms. A tick moves only the
+        # robots whose physics answered, so the control period is the teleoperated robot's own:
+        # the median time between two actions sent to it.
+        "latency_target_ms": teleop_p50 + 20 if teleop_p50 is not None else None,
     }
 
 
 def bench_fleet(
-    task: str, sizes: list[int], seconds: float = 10.0, progress: bool = True, torch_threads: int = 1
+    task: str,
+    sizes: list[int],
+    seconds: float = 10.0,
+    progress: bool = True,
+    torch_threads: int = 1,
+    command_hz: float = 30.0,
 ) -> dict:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in tqdm(sizes, desc="bench fleet", disable=not progress):
             raw = raw_throughput(task, n, seconds)
-            fleet = fleet_throughput(task, n, seconds, Path(tmp) / f"n{n}", torch_threads)
+            fleet = fleet_throughput(task, n, seconds, Path(tmp) / f"n{n}", torch_threads, command_hz)
             rows.append(
                 {"robots": n, "raw_env_steps_per_s": raw, **fleet, "share_of_raw": fleet["env_steps_per_s"] / raw}
             )
@@ -138,5 +172,6 @@ def bench_fleet(
         "task": task,
         "seconds_per_measurement": seconds,
         "server_torch_threads": torch_threads,
+        "operator_command_hz": command_hz,
         "sizes": rows,
     }

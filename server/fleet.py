@@ -1,10 +1,13 @@
 """The fleet runtime: robots in worker processes, the policy and its uncertainty batched across the
 fleet in the server, robot modes, takeovers and their recording.
 
-One control tick: collect every worker's latest frame (without waiting on any); for the
-autonomous robots that are ready, one batched action sample and one batched uncertainty
-evaluation per policy; then each ready robot gets its next action: the policy's, the operator's
-command, or a hold of the pose it had when it stopped (no drift).
+One control tick: collect every worker's latest frame (without waiting on any); for the robots
+that are ready and moving (autonomous, or teleoperated with a command pending), one batched
+action sample and one batched evaluation of every signal per policy; then each ready robot gets
+its next action: the policy's, the operator's command, or a hold of the pose it had when it
+stopped (no drift). Workers run at a lower CPU priority than the control loop
+(``worker_niceness``): on a machine with fewer cores than robots, the batched policy step must
+not queue behind the physics it feeds.
 
 Modes: ``autonomous -> waiting -> teleop -> autonomous``, plus ``paused`` (not stepped: the scene
 and the episode clock are frozen), ``done`` (then the next episode starts) and ``faulted`` (the
@@ -16,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing as mp
+import os
 import threading
 import time
 from collections import deque
@@ -30,7 +34,7 @@ from sqlalchemy.orm import sessionmaker
 
 from policy.checkpoint import load_policy
 from policy.signals import SignalError, load_signal
-from policy.signals.base import SignalInput, TriggerState
+from policy.signals.base import Scores, SignalInput, TriggerState
 from server.assistance import AssistanceQueue, QueueError
 from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
 from server.settings import Settings
@@ -108,6 +112,7 @@ class Robot:
     history: deque = field(default_factory=deque)
     hold_target: np.ndarray | None = None
     command: tuple[TeleopCommand, float] | None = None  # (command, monotonic receive time)
+    applied: tuple | None = None  # (command, teleop target) sent this tick, awaiting its shadow scores
     teleop_left: int | None = None
     below: int = 0
     episode_id: int | None = None
@@ -125,6 +130,9 @@ class Robot:
     fault: str | None = None
     paused_from: str | None = None
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
+    action_periods: deque = field(default_factory=lambda: deque(maxlen=1000))  # seconds between actions sent
+    last_sent: float | None = None
+    niceness: int | None = None  # the worker's current CPU priority (None: not set since spawn)
     recorder: EpisodeWriter | None = None  # whole-episode recording (settings.record_episodes)
     pending_step: tuple | None = None  # the step sent, written once its outcome arrives
     view: RobotView | None = None  # what readers see (``Fleet._publish``)
@@ -144,6 +152,8 @@ class Fleet:
         self.env_steps = 0  # actions sent to workers, all robots, since start
         self.tick_periods: deque = deque(maxlen=2000)
         self._ctx = mp.get_context("spawn")
+        self._priority_denied = False
+        self.loop_cpu_seconds = 0.0  # CPU time of the control loop's ticks
         self.operator_busy: dict[str, float] = {}  # seconds in control, per operator
         self.operator_since: dict[str, float] = {}  # first claim, per operator
         self._build()
@@ -159,6 +169,8 @@ class Fleet:
             raise FleetError(
                 500, f"policy {path} expects {policy.config.obs_dim}-dim observations, {task} gives {obs_dim}"
             )
+        if self.settings.trace_policies:
+            policy.freeze_for_inference()
         signals = {}
         for name in dict.fromkeys([self.settings.signal, "denoising", *self.settings.shadow_signals]):
             try:
@@ -194,6 +206,8 @@ class Fleet:
         proc.start()
         child.close()
         robot.process, robot.conn = proc, parent
+        robot.niceness, robot.last_sent = None, None
+        self._prioritize(robot)
         self._new_episode(robot)
 
     def _new_episode(self, robot: Robot) -> None:
@@ -217,7 +231,7 @@ class Fleet:
         self._close_recorder(robot, None, robot.steps, "faulted")
         self._finish_episode_row(robot, "faulted")
         self.queue.close(robot.id)
-        robot.mode, robot.fault, robot.awaiting = "faulted", why, False
+        robot.mode, robot.fault, robot.awaiting, robot.applied = "faulted", why, False, None
         if robot.process is not None and robot.process.is_alive():
             robot.process.kill()
         robot.process = robot.conn = None
@@ -264,12 +278,14 @@ class Fleet:
                         pending = [r.conn for r in self.robots.values() if r.awaiting and r.conn is not None]
                     if pending:
                         wait(pending, timeout=0.05)
+                cpu = time.thread_time()
                 try:
                     with self.lock:
                         worked = self.tick()
                 except Exception:  # a bug in one tick must not stop the fleet
                     log.exception("control tick failed")
                     worked = False
+                self.loop_cpu_seconds += time.thread_time() - cpu
                 now = time.monotonic()
                 if worked:
                     self.tick_periods.append(now - last)
@@ -332,16 +348,19 @@ class Fleet:
         for r in self.robots.values():  # nothing older than a second is only in memory
             if r.segment is not None:
                 r.segment.maybe_flush()
+            self._prioritize(r)
         ready = [r for r in self.robots.values() if self._collect(r) and r.mode != "paused"]
         if not ready:
             for r in self.robots.values():  # faults, restarts and pauses still show
                 self._publish(r)
             return False
         self.ticks += 1
-        for robots in _by_slot(r for r in ready if r.mode == "autonomous").values():
-            self._autonomous(robots)
-        for robots in _by_slot(r for r in ready if r.mode == "teleop" and r.command is not None).values():
-            self._teleop(robots)
+        for r in ready:  # the operator's command goes out first: it does not wait for the fleet's batch
+            if r.mode == "teleop" and r.command is not None:
+                self._send_command(r)
+        moving = (r for r in ready if r.mode == "autonomous" or (r.mode == "teleop" and r.applied is not None))
+        for robots in _by_slot(moving).values():
+            self._step_slot(robots)
         for r in ready:
             if not r.awaiting and r.mode in ("waiting", "teleop"):  # hold the pose; paused robots are not stepped
                 self._send(r, r.hold_target if r.hold_target is not None else r.frame["hold"])
@@ -349,24 +368,57 @@ class Fleet:
             self._publish(r)
         return True
 
+    def _prioritize(self, robot: Robot) -> None:
+        """A teleoperated robot's worker runs at the control loop's priority, the others below it:
+        the operator's robot does not queue behind the fleet's physics. Raising a priority again
+        needs CAP_SYS_NICE; without it every worker stays at ``worker_niceness``."""
+        want = 0 if robot.mode == "teleop" else self.settings.worker_niceness
+        if robot.niceness == want or robot.process is None or robot.process.pid is None:
+            return
+        try:
+            os.setpriority(os.PRIO_PROCESS, robot.process.pid, want)
+        except PermissionError:
+            if not self._priority_denied:
+                log.info("cannot raise worker priority for teleoperated robots (needs CAP_SYS_NICE)")
+            self._priority_denied = True
+            want = self.settings.worker_niceness
+        except ProcessLookupError:  # exited: the next collect faults it
+            return
+        robot.niceness = want
+
     def _batch(self, robots: list[Robot]) -> tuple[torch.Tensor, torch.Tensor]:
         obs = torch.stack([torch.stack(list(r.history)) for r in robots])
         current = torch.as_tensor(np.stack([r.frame["hold"] for r in robots]), dtype=torch.float32)
         return obs, current
 
-    def _autonomous(self, robots: list[Robot]) -> None:
+    def _step_slot(self, robots: list[Robot]) -> None:
+        """One batched action sample and one batched scoring of every signal for the robots of one
+        policy: the autonomous ones act on it (or ask), the teleoperated ones apply their pending
+        command and are scored in shadow (for the segment, the console and auto-return)."""
         slot = robots[0].slot
         obs, current = self._batch(robots)
         ids = np.array([r.id for r in robots])
+        teleop = np.array([r.mode == "teleop" for r in robots])
+        operator = None
+        if teleop.any():
+            operator = torch.full((len(robots), 10), float("nan"))
+            for j in np.flatnonzero(teleop):
+                operator[j] = torch.as_tensor(robots[j].applied[1].action, dtype=torch.float32)
         with torch.no_grad():
             chunks = slot.policy.predict_action_chunk(obs)
-            scores = slot.score(SignalInput(obs, current, ids, action=chunks))
-        state = TriggerState.autonomous(ids)
-        decisions = {name: slot.signals[name].wants_help(sc, state) for name, sc in scores.items()}
+            scores = slot.score(SignalInput(obs, current, ids, action=chunks, operator_action=operator))
+        auto = np.flatnonzero(~teleop)
+        if len(auto):  # trigger rules see only the robots the policy drives, as before a takeover
+            state = TriggerState.autonomous(ids[auto])
+            decisions = {name: slot.signals[name].wants_help(_take(sc, auto), state) for name, sc in scores.items()}
+            asks = dict(zip(auto.tolist(), decisions[slot.active], strict=True))
         active = slot.signals[slot.active]
         for j, r in enumerate(robots):
+            if teleop[j]:
+                self._after_command(r, scores, j)
+                continue
             self._remember(r, scores["denoising"], j)
-            if decisions[slot.active][j]:
+            if asks[j] and self.settings.assistance:
                 value, threshold = float(scores[slot.active].value[j]), active.threshold
                 r.mode, r.hold_target = "waiting", r.frame["hold"].copy()
                 r.events += 1
@@ -390,25 +442,20 @@ class Fleet:
             "weights": res.weights,
         }
 
-    def _teleop(self, robots: list[Robot]) -> None:
-        """Applies each robot's pending command; every signal scored in shadow (one batch per policy)
-        for the segment, the console and auto-return."""
-        slot = robots[0].slot
-        obs, current = self._batch(robots)
-        targets = []
-        for r in robots:
-            (cmd, received), r.command = r.command, None  # a command arriving meanwhile waits for the next tick
-            targets.append((cmd, received, r.action_space.apply_teleop(cmd, r.frame["pos"], r.frame["rot"])))
-        operator = torch.as_tensor(np.stack([t.action for _, _, t in targets]), dtype=torch.float32)
-        with torch.no_grad():
-            scores = slot.score(SignalInput(obs, current, np.array([r.id for r in robots]), operator_action=operator))
-        for j, robot in enumerate(robots):
-            self._apply_command(robot, scores, j, *targets[j])
+    def _send_command(self, robot: Robot) -> None:
+        """Sends the robot's pending operator command (the tick's shadow scoring follows)."""
+        (cmd, received), robot.command = robot.command, None  # a command arriving meanwhile waits for the next tick
+        target = robot.action_space.apply_teleop(cmd, robot.frame["pos"], robot.frame["rot"])
+        robot.hold_target = target.action.copy()
+        robot.applied = (cmd, target)
+        self._send(robot, target.action, keys.SOURCE_OPERATOR)
+        robot.latencies.append(time.monotonic() - received)
 
-    def _apply_command(self, robot: Robot, scores: dict, j: int, cmd, received: float, target) -> None:
+    def _after_command(self, robot: Robot, scores: dict, j: int) -> None:
+        """The command's shadow scores: segment step, console field, budget and auto-return."""
         slot = robot.slot
+        (cmd, target), robot.applied = robot.applied, None
         action = target.action
-        robot.hold_target = action.copy()
         self._remember(robot, scores["denoising"], j)
         u = float(scores["denoising"].value[j])
         if robot.segment is not None:
@@ -430,8 +477,6 @@ class Fleet:
                 field=_world_field(slot, robot.last_result),  # the field just remembered
             )
         robot.assisted_steps += 1
-        self._send(robot, action, keys.SOURCE_OPERATOR)
-        robot.latencies.append(time.monotonic() - received)
         robot.below = robot.below + 1 if u <= slot.threshold else 0
         if robot.teleop_left is not None:
             robot.teleop_left -= 1
@@ -457,6 +502,10 @@ class Fleet:
             robot.awaiting = True
             robot.steps += 1
             self.env_steps += 1
+            now = time.monotonic()
+            if robot.last_sent is not None:
+                robot.action_periods.append(now - robot.last_sent)
+            robot.last_sent = now
         except (OSError, BrokenPipeError) as exc:
             self._fault(robot, f"worker pipe broke: {exc}")
 
@@ -696,6 +745,11 @@ class Fleet:
                 "robots_by_mode": {m: sum(r.mode == m for r in robots) for m in MODES},
                 "ticks": self.ticks,
             }
+
+
+def _take(scores: Scores, rows: np.ndarray) -> Scores:
+    """The scores of some rows of a batch (values and parts; the detail stays with the batch)."""
+    return Scores(np.asarray(scores.value)[rows], {k: np.asarray(v)[rows] for k, v in scores.parts.items()})
 
 
 def _by_slot(robots) -> dict[int, list[Robot]]:

@@ -52,6 +52,9 @@ class Settings(BaseSettings):
     control_hz: float = Field(10.0, ge=0, le=200, description="0: free-running (benchmarks)")
     robots: list[RobotGroup] = Field(default_factory=lambda: [RobotGroup(task="lift-cube", count=1)])
     signal: str = Field("denoising", description="the assistance signal that asks for help")
+    assistance: bool = Field(
+        True, description="false: signals are scored and recorded, but no robot asks for help (shadow runs)"
+    )
     shadow_signals: list[str] = Field(default_factory=list, description="signals scored alongside, recorded")
     trigger_mode: Literal["budgeted", "continuous"] = "budgeted"
     budget_steps: int = Field(4, ge=1, le=1000)
@@ -61,6 +64,10 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(64 * 1024, ge=1024)
     seed: int = 0
     torch_threads: int = Field(1, ge=1, le=256, description="server-side torch threads; workers take the other cores")
+    trace_policies: bool = Field(True, description="serve each policy's noise network as a frozen TorchScript trace")
+    worker_niceness: int = Field(
+        10, ge=0, le=19, description="CPU priority of the physics workers below the control loop (os.nice)"
+    )
 
     @field_validator("signal")
     @classmethod

@@ -45,7 +45,10 @@ def _jsonable(v):
 
 
 def worker_main(conn: Connection, task_name: str) -> None:
-    """Process entry point; exits on ``close`` or when the server end of the pipe goes away."""
+    """Process entry point; exits on ``close`` or when the server end of the pipe goes away.
+
+    The server sets the process's CPU priority (see ``Fleet._prioritize``).
+    """
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from sim.registry import make_task
 

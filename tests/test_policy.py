@@ -123,6 +123,41 @@ def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
     assert torch.equal(a, b)
 
 
+@pytest.mark.parametrize(("network", "horizon", "chunk"), [("unet", 1, 1), ("unet", 2, 8), ("mlp", 1, 1)])
+def test_frozen_inference_gives_the_same_outputs_and_never_trains(network, horizon, chunk):
+    data = _toy_data(horizon=horizon, chunk=chunk)
+    policy = _policy(network, horizon, chunk)
+    policy.fit_normalizers(data[keys.OBS], data[keys.ACTION])
+    policy.eval()
+    obs = torch.as_tensor(data[keys.OBS][:5])
+    probe = torch.rand(5, 16, chunk, 10)
+    eager_actions = policy.predict_action_chunk(obs, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        eager_eps = policy.noise_prediction(obs, probe, 0)
+    keys_before = set(policy.state_dict())
+    policy.freeze_for_inference()
+    assert set(policy.state_dict()) == keys_before  # the traced copy is not part of the checkpoint
+    traced_actions = policy.predict_action_chunk(obs, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():  # other batch sizes and sample counts than the trace saw
+        torch.testing.assert_close(policy.noise_prediction(obs, probe, 0), eager_eps, rtol=1e-5, atol=1e-6)
+        one = policy.noise_prediction(obs[:1], probe[:1, :3], 0)
+        torch.testing.assert_close(one, eager_eps[:1, :3], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(traced_actions, eager_actions, rtol=1e-5, atol=1e-6)
+    # gradients still flow through the module itself, and training drops the stale copy
+    loss = policy.compute_loss({k: torch.as_tensor(v[:8]) for k, v in data.items()})
+    loss.backward()
+    assert all(p.grad is not None for p in policy.net.parameters() if p.requires_grad)
+    with torch.no_grad():
+        for param in policy.net.parameters():
+            param.add_(0.1)
+    policy.train()
+    policy.eval()
+    with torch.no_grad():
+        assert not torch.allclose(policy.noise_prediction(obs, probe, 0), eager_eps)
+    with pytest.raises(RuntimeError, match="eval mode"):
+        policy.train().freeze_for_inference()
+
+
 def test_bad_checkpoints_get_clear_errors(tmp_path):
     with pytest.raises(CheckpointError, match="config.json not found"):
         load_policy(tmp_path)

@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 import time
 
 import httpx
@@ -81,6 +82,15 @@ def test_takeover_round_trip_records_a_segment(service):
     claim = httpx.post(api + "/robots/0/claim", headers=op)
     assert claim.status_code == 200, claim.text
     assert _robot(service, 0)["mode"] == "teleop"
+    # the operator's robot steps at the control loop's priority, the rest of the fleet below it
+    fleet = service.server.config.app.state.fleet  # the workers are children of this process
+    nice = service.settings.worker_niceness
+
+    def priority(rid):
+        return os.getpriority(os.PRIO_PROCESS, fleet.robots[rid].process.pid)
+
+    wait_for(lambda: priority(0) == 0 or fleet._priority_denied)  # raising a priority needs CAP_SYS_NICE
+    assert priority(1) == nice and nice > 0
     # a second claimant and a non-holder's command get 409 and change nothing
     assert httpx.post(api + "/robots/0/claim", headers=_h(service, "operator2")).status_code == 409
     cmd = {"delta_pos": [0.0, 0.0, 0.01], "delta_rot": [0, 0, 0], "gripper": -1.0}
@@ -106,6 +116,7 @@ def test_takeover_round_trip_records_a_segment(service):
         assert httpx.post(api + "/robots/0/command", json=cmd, headers=op).status_code == 200
         time.sleep(0.15)
     wait_for(lambda: _robot(service, 0)["assisted_steps"] >= 3)
+    wait_for(lambda: priority(0) == nice)  # handed back: below the control loop again
     seg = wait_for(
         lambda: [
             s
@@ -226,3 +237,30 @@ def test_oversized_bodies_are_refused_with_or_without_a_length(service):
     small = json.dumps({"delta_pos": [0, 0, 0], "gripper": -1}).encode()
     r = httpx.post(api + "/robots/99/command", content=iter([small]), headers=op | {"content-type": "application/json"})
     assert r.status_code == 404 and "no robot 99" in r.text
+
+
+def test_a_shadow_run_scores_every_step_and_never_asks(tmp_path):
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)  # every step is over it
+    settings = Settings(
+        data_dir=tmp_path / "var",
+        port=free_port(),
+        robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
+        control_hz=20,
+        assistance=False,
+    )
+    migrate(settings.db_url)
+    token = create_token(session_factory(make_engine(settings.db_url)), "viewer", "viewer")
+    h = {"Authorization": f"Bearer {token}"}
+    with Service(settings) as svc:
+        api = svc.url + "/api/v1"
+
+        def stepped():
+            rs = httpx.get(api + "/robots", headers=h).json()
+            return rs if all(r["episode_step"] >= 5 for r in rs) else None
+
+        robots = wait_for(stepped)
+        assert all(r["mode"] == "autonomous" for r in robots)
+        assert httpx.get(api + "/assistance", headers=h).json() == []
+        for r in robots:
+            detail = httpx.get(f"{api}/robots/{r['id']}", headers=h).json()
+            assert len(detail["u_history"]) >= 5 and all(math.isfinite(u) and u >= 0 for u in detail["u_history"])

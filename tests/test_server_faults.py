@@ -49,6 +49,7 @@ def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
             lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] in ("autonomous", "waiting") and r, 30
         )
         assert again["restarts"] == 1 and fleet.robots[0].process.pid != pid
+        assert os.getpriority(os.PRIO_PROCESS, fleet.robots[0].process.pid) == settings.worker_niceness
         outcomes = [e["outcome"] for e in httpx.get(api + "/episodes", headers=h).json()]
         assert "faulted" in outcomes  # the interrupted episode is closed, not left open
 
