@@ -39,13 +39,30 @@ def _cmd_train(args: argparse.Namespace) -> int:
         num_inference_steps=args.ddim_steps,
         obs_encoder_dims=tuple(args.obs_encoder_dims),
     )
-    tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads)
+    if args.symmetry_augment and task.symmetry_order < 2:
+        raise ValueError(f"--symmetry-augment: task {args.task} has no scene symmetry to augment with")
+    tcfg = TrainConfig(
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        threads=args.threads,
+        symmetry_augment=args.symmetry_augment,
+    )
     torch.manual_seed(args.seed)
     policy = DiffusionPolicy(cfg)
     # normalizer statistics come from the training episodes only
     train_idx = ds.sample_index(train_ep)
     policy.fit_normalizers(ds.obs[train_idx[:, 0]], ds.actions[train_idx[:, 0]])
-    ema, history = train_policy(policy, ds.arrays("train"), ds.arrays("val"), tcfg, progress=not args.quiet)
+    ema, history = train_policy(
+        policy,
+        ds.arrays("train"),
+        ds.arrays("val"),
+        tcfg,
+        progress=not args.quiet,
+        symmetry=task.symmetric_observation,
+        symmetry_order=task.symmetry_order,
+    )
     info = {
         "task": args.task,
         "dataset": {
@@ -319,6 +336,11 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     p.add_argument("--ddim-steps", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: all)")
+    p.add_argument(
+        "--symmetry-augment",
+        action="store_true",
+        help="train on observations turned into random identical poses of the scene (lift-cube: quarter turns)",
+    )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train, command_line=None)
 

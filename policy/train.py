@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -30,6 +31,7 @@ class TrainConfig:
     seed: int = 0
     val_every: int = 1000
     threads: int | None = None
+    symmetry_augment: bool = False  # each sample's observation turned into a random identical pose
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "val_every"):
@@ -71,8 +73,14 @@ def train_policy(
     val: dict[str, np.ndarray] | None,
     cfg: TrainConfig,
     progress: bool = True,
+    symmetry: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    symmetry_order: int = 1,
 ) -> tuple[DiffusionPolicy, dict]:
     """Trains ``policy`` (normalizers must already be fitted) on {OBS, ACTION} arrays.
+
+    With ``cfg.symmetry_augment``, ``symmetry(obs, k)`` (a task's ``symmetric_observation``) turns
+    each sampled observation history into one of its ``symmetry_order`` identical poses, drawn
+    at random; the action is unchanged, since the scene is physically the same.
 
     Returns (EMA policy, history with loss curves and timing).
     """
@@ -84,6 +92,8 @@ def train_policy(
     val_t = {k: torch.as_tensor(v) for k, v in val.items()} if val and len(val[keys.OBS]) else None
     n = data[keys.OBS].shape[0]
     g = torch.Generator().manual_seed(cfg.seed)
+    if cfg.symmetry_augment and (symmetry is None or symmetry_order < 2):
+        raise ValueError("symmetry_augment needs a task whose scene has a symmetry (symmetry_order >= 2)")
     ema = copy.deepcopy(policy).eval()
     opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     history: dict = {"step": [], "train_loss": [], "val_step": [], "val_loss": []}
@@ -96,7 +106,11 @@ def train_policy(
             for group in opt.param_groups:
                 group["lr"] = cfg.lr * _lr_factor(step, cfg)
             idx = torch.randint(0, n, (cfg.batch_size,), generator=g)
-            loss = policy.compute_loss({k: v[idx] for k, v in data.items()}, generator=g)
+            batch = {k: v[idx] for k, v in data.items()}
+            if cfg.symmetry_augment:
+                turn = torch.randint(0, symmetry_order, (cfg.batch_size, 1), generator=g).numpy()
+                batch[keys.OBS] = torch.as_tensor(symmetry(batch[keys.OBS].numpy(), turn), dtype=torch.float32)
+            loss = policy.compute_loss(batch, generator=g)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"training loss became {float(loss)} at step {step}")
             opt.zero_grad(set_to_none=True)

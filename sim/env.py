@@ -173,6 +173,15 @@ class Task(ABC):
         """Task-specific outcome details of the current episode (JSON-serialisable)."""
         return {}
 
+    # -- symmetry ---------------------------------------------------------------
+    symmetry_order: int = 1  # physically identical poses of the scene that observe differently
+
+    def symmetric_observation(self, obs: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """obs (..., dim) as observed with the scene turned into its k-th identical pose,
+        k (...) in [0, symmetry_order). The identity for tasks without such a symmetry; training
+        uses it to augment demonstrations (``hitl train --symmetry-augment``)."""
+        return obs
+
     # -- environment access -----------------------------------------------
     @property
     def env(self):

@@ -220,3 +220,24 @@ def test_rollout_scores_every_step_of_every_robot():
         assert np.isfinite(e.uncertainty).all() and "max_lift" in e.info
     s = summarize(episodes)
     assert s["episodes"] == 2 and np.isfinite(s["uncertainty"]["p95"])
+
+
+def test_symmetry_augmentation_turns_each_sample_and_needs_a_symmetry():
+    data = _toy_data()
+    policy = _policy("mlp")
+    policy.fit_normalizers(data[keys.OBS], data[keys.ACTION])
+    cfg = TrainConfig(steps=5, batch_size=16, warmup_steps=1, symmetry_augment=True)
+    with pytest.raises(ValueError, match="symmetry"):
+        train_policy(policy, data, None, cfg, progress=False)
+    seen = []
+
+    def flip(obs, k):  # a two-fold "symmetry" that negates the first observation dim on turn 1
+        seen.append(k.copy())
+        out = obs.copy()
+        out[..., 0] = np.where(k == 1, -obs[..., 0], obs[..., 0])
+        return out
+
+    _, history = train_policy(policy, data, None, cfg, progress=False, symmetry=flip, symmetry_order=2)
+    turns = np.concatenate(seen)
+    assert len(seen) == 5 and turns.shape == (80, 1) and set(np.unique(turns)) == {0, 1}
+    assert all(np.isfinite(history["train_loss"]))

@@ -82,10 +82,15 @@ class LiftObject:
     factory: object
     grasp: GraspSpec
     default_quat: tuple[float, float, float, float] | None = None  # before the random yaw
+    # yaw about the object's vertical axis through its body origin that leaves it unchanged
+    # (the cube: a quarter turn); None for objects with no such symmetry
+    body_symmetry: float | None = None
 
 
 LIFT_OBJECTS: dict[str, LiftObject] = {
-    "cube": LiftObject("cube", _make_cube, GraspSpec((0, 0, 0), (1, 0, 0), symmetry=np.pi / 2)),
+    "cube": LiftObject(
+        "cube", _make_cube, GraspSpec((0, 0, 0), (1, 0, 0), symmetry=np.pi / 2), body_symmetry=np.pi / 2
+    ),
     "nut": LiftObject("nut", _make_nut, GraspSpec((0.06, 0, 0), (1, 0, 0))),
     "hammer": LiftObject("hammer", _make_hammer, GraspSpec((0, 0, 0.02), (0, 0, 1))),
     "hook": LiftObject("hook", _make_hook, GraspSpec((0.03, 0, 0.049), (1, 0, 0))),
@@ -110,6 +115,22 @@ class LiftTask(Task):
             self.problem = "training distribution"
         self._rest_z = 0.0
         self._max_lift = 0.0
+        sym = self.spec.body_symmetry
+        self.symmetry_order = round(2 * np.pi / sym) if sym else 1
+
+    def symmetric_observation(self, obs: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """Turns the observed object orientation by k * body_symmetry about the vertical: the
+        object looks the same, its position and the gripper do not move."""
+        if self.symmetry_order == 1:
+            return obs
+        angle = np.asarray(k) * self.spec.body_symmetry
+        c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
+        out = np.array(obs, copy=True)
+        rot6d = self.obs_spec.slices()["object_rot6d"]
+        for col in (slice(rot6d.start, rot6d.start + 3), slice(rot6d.start + 3, rot6d.stop)):
+            x, y = obs[..., col][..., 0:1], obs[..., col][..., 1:2]
+            out[..., col.start : col.start + 2] = np.concatenate([c * x - s * y, s * x + c * y], axis=-1)
+        return out
 
     def build_objects(self) -> dict:
         self.obj = self.spec.factory(self.object_name)
