@@ -38,6 +38,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         down_dims=tuple(args.down_dims),
         num_inference_steps=args.ddim_steps,
         obs_encoder_dims=tuple(args.obs_encoder_dims),
+        obs_fourier_octaves=args.obs_fourier_octaves,
     )
     if args.symmetry_augment and task.symmetry_order < 2:
         raise ValueError(f"--symmetry-augment: task {args.task} has no scene symmetry to augment with")
@@ -336,6 +337,12 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     p.add_argument("--ddim-steps", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: all)")
+    p.add_argument(
+        "--obs-fourier-octaves",
+        type=int,
+        default=0,
+        help="feed the observation encoder sin/cos of each observation at this many octave frequencies",
+    )
     p.add_argument(
         "--symmetry-augment",
         action="store_true",

@@ -29,6 +29,8 @@ class DiffusionPolicyConfig:
     n_groups: int = 8
     step_embed_dim: int = 64
     obs_encoder_dims: tuple[int, ...] = (256, 256)
+    # sin/cos of 2^j * pi * x (j < octaves) of each normalized observation value feed the encoder MLP
+    obs_fourier_octaves: int = 0
     mlp_hidden: int = 128
     mlp_layers: int = 2
     num_train_steps: int = 100
@@ -80,6 +82,10 @@ class DiffusionPolicyConfig:
             raise ValueError(
                 f"num_inference_steps ({self.num_inference_steps}) exceeds num_train_steps ({self.num_train_steps})"
             )
+        if not (isinstance(self.obs_fourier_octaves, int) and 0 <= self.obs_fourier_octaves <= 8):
+            raise ValueError(f"obs_fourier_octaves must be an integer in [0, 8], got {self.obs_fourier_octaves!r}")
+        if self.obs_fourier_octaves and not self.obs_encoder_dims:
+            raise ValueError("obs_fourier_octaves needs an observation encoder (obs_encoder_dims)")
         if not 0 <= self.clip_margin <= 10:
             raise ValueError(f"clip_margin must be in [0, 10], got {self.clip_margin!r}")
 

@@ -7,6 +7,7 @@ dimension happens inside, with the statistics stored as buffers.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections import deque
 
@@ -28,16 +29,26 @@ class ObsEncoder(nn.Module):
     linear in the conditioning); it runs once per robot, not once per probe sample.
     """
 
-    def __init__(self, in_dim: int, dims: tuple[int, ...]) -> None:
+    def __init__(self, in_dim: int, dims: tuple[int, ...], fourier_octaves: int = 0) -> None:
         super().__init__()
+        self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(fourier_octaves), persistent=False)
         layers: list[nn.Module] = []
+        first = in_dim * (1 + 2 * fourier_octaves)
         for d in dims:
-            layers += [nn.Linear(in_dim if not layers else layers[-2].out_features, d), nn.Mish()]
+            layers += [nn.Linear(first if not layers else layers[-2].out_features, d), nn.Mish()]
         self.mlp = nn.Sequential(*layers)
         self.out_dim = in_dim + (dims[-1] if dims else 0)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([x, self.mlp(x)], dim=-1) if len(self.mlp) else x
+        """x: (B, in_dim) normalized -> (B, out_dim): x itself, then the MLP's features of x (and of
+        its sin/cos at octave frequencies, which let it follow fast periodic functions of x)."""
+        if not len(self.mlp):
+            return x
+        feats = x
+        if len(self.freqs):
+            arg = (x[..., None] * self.freqs).flatten(-2)
+            feats = torch.cat([x, arg.sin(), arg.cos()], dim=-1)
+        return torch.cat([x, self.mlp(feats)], dim=-1)
 
 
 def _build_network(cfg: DiffusionPolicyConfig, cond: int) -> nn.Module:
@@ -61,7 +72,9 @@ class DiffusionPolicy(nn.Module):
         self.config = config
         self.obs_normalizer = MinMaxNormalizer(config.obs_dim)
         self.action_normalizer = MinMaxNormalizer(config.action_dim)
-        self.obs_encoder = ObsEncoder(config.obs_dim * config.obs_horizon, config.obs_encoder_dims)
+        self.obs_encoder = ObsEncoder(
+            config.obs_dim * config.obs_horizon, config.obs_encoder_dims, config.obs_fourier_octaves
+        )
         self.net = _build_network(config, self.obs_encoder.out_dim)
         m = config.clip_margin
         self.schedule = NoiseSchedule(config.num_train_steps, clip_range=(-m, 1 + m))

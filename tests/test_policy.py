@@ -43,11 +43,12 @@ def _policy(network="mlp", horizon=1, chunk=1, n_action_steps=None, **kw):
 
 
 @pytest.mark.parametrize(
-    ("network", "horizon", "chunk"), [("mlp", 1, 1), ("unet", 1, 1), ("unet", 2, 8), ("mlp", 2, 8)]
+    ("network", "horizon", "chunk", "octaves"),
+    [("mlp", 1, 1, 0), ("unet", 1, 1, 0), ("unet", 2, 8, 0), ("mlp", 2, 8, 0), ("unet", 1, 1, 3)],
 )
-def test_training_reduces_loss_and_shapes_are_right(network, horizon, chunk):
+def test_training_reduces_loss_and_shapes_are_right(network, horizon, chunk, octaves):
     data = _toy_data(horizon=horizon, chunk=chunk)
-    policy = _policy(network, horizon, chunk)
+    policy = _policy(network, horizon, chunk, obs_fourier_octaves=octaves)
     policy.fit_normalizers(data[keys.OBS], data[keys.ACTION])
     with torch.no_grad():
         before = float(
@@ -178,6 +179,8 @@ def test_bad_checkpoints_get_clear_errors(tmp_path):
         ({"n_action_steps": 9, "action_horizon": 8}, "n_action_steps"),
         ({"down_dims": (30,)}, "n_groups"),
         ({"num_inference_steps": 200}, "num_inference_steps"),
+        ({"obs_fourier_octaves": 9}, "obs_fourier_octaves"),
+        ({"obs_fourier_octaves": 2, "obs_encoder_dims": ()}, "obs_encoder_dims"),
     ],
 )
 def test_config_errors_name_the_bad_value(kwargs, match):
