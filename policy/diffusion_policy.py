@@ -142,8 +142,8 @@ class DiffusionPolicy(nn.Module):
         cond = torch.zeros((2, self.obs_encoder.out_dim))
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks become constants
-            # TorchScript is deprecated in favour of torch.compile, which compiles for 45-70 s per policy
-            # here and again for new batch shapes (docs/service.md); tracing is instant
+            # TorchScript is deprecated in favour of torch.compile, which compiles for tens of seconds per
+            # policy on a small CPU and again for new batch shapes; tracing is instant
             warnings.simplefilter("ignore", DeprecationWarning)
             traced = torch.jit.freeze(torch.jit.trace(self.net, (x, k, cond), check_trace=False))
         self.__dict__["_traced"] = traced  # not a submodule: never in the state dict

@@ -35,6 +35,7 @@ from sqlalchemy.orm import sessionmaker
 from policy.checkpoint import load_policy
 from policy.signals import SignalError, load_signal
 from policy.signals.base import Scores, SignalInput, TriggerState
+from policy.uncertainty import UncertaintyResult
 from server.assistance import AssistanceQueue, QueueError
 from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
 from server.settings import Settings
@@ -88,7 +89,7 @@ class RobotView:
     steps: int
     u_history: tuple
     frame: dict | None
-    last_result: dict | None
+    last_result: UncertaintyResult | None
     episodes_done: int
     successes: int
     assisted_steps: int
@@ -122,7 +123,7 @@ class Robot:
     episodes_done: int = 0
     successes: int = 0
     u_history: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))
-    last_result: dict | None = None
+    last_result: UncertaintyResult | None = None
     segment: SegmentWriter | None = None
     segment_id: int | None = None
     restarts: int = 0
@@ -408,11 +409,10 @@ class Fleet:
             chunks = slot.policy.predict_action_chunk(obs)
             scores = slot.score(SignalInput(obs, current, ids, action=chunks, operator_action=operator))
         auto = np.flatnonzero(~teleop)
-        if len(auto):  # trigger rules see only the robots the policy drives, as before a takeover
-            state = TriggerState.autonomous(ids[auto])
-            decisions = {name: slot.signals[name].wants_help(_take(sc, auto), state) for name, sc in scores.items()}
-            asks = dict(zip(auto.tolist(), decisions[slot.active], strict=True))
         active = slot.signals[slot.active]
+        if len(auto):  # the asking signal's trigger rule sees only the robots the policy drives
+            wants = active.wants_help(_take(scores[slot.active], auto), TriggerState.autonomous(ids[auto]))
+            asks = dict(zip(auto.tolist(), wants, strict=True))
         for j, r in enumerate(robots):
             if teleop[j]:
                 self._after_command(r, scores, j)
@@ -430,17 +430,7 @@ class Fleet:
     def _remember(self, robot: Robot, scores, j: int) -> None:
         res = scores.detail.robot(j)
         robot.u_history.append(res.U)
-        robot.last_result = {
-            "U": res.U,
-            "D": res.D,
-            "var_g": res.var_g,
-            "n": res.n,
-            "samples": res.samples,
-            "vectors": res.vectors,
-            "labels": res.labels,
-            "means": res.means,
-            "weights": res.weights,
-        }
+        robot.last_result = res
 
     def _send_command(self, robot: Robot) -> None:
         """Sends the robot's pending operator command (the tick's shadow scoring follows)."""
@@ -759,12 +749,12 @@ def _by_slot(robots) -> dict[int, list[Robot]]:
     return out
 
 
-def _world_field(slot: PolicySlot, result: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def _world_field(slot: PolicySlot, result: UncertaintyResult) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """The probe samples in metres (world frame) and the denoising directions (-ε, rescaled per axis
     from the normalized action space), for the segment's arrows; the longest arrow is 2 cm."""
     norm = slot.policy.action_normalizer
     low, span = norm.low[:3].numpy().astype(np.float64), norm.span[:3].numpy().astype(np.float64)
-    samples = result["samples"] * span + low
-    vectors = -result["vectors"] * span
+    samples = result.samples * span + low
+    vectors = -result.vectors * span
     longest = float(np.linalg.norm(vectors, axis=1).max()) if len(vectors) else 0.0
-    return samples, vectors, result["labels"], 0.02 / longest if longest > 0 else 0.0
+    return samples, vectors, result.labels, 0.02 / longest if longest > 0 else 0.0

@@ -20,16 +20,16 @@ def _uncertainty(robot: RobotView) -> UncertaintyOut | None:
     if r is None:
         return None
     return UncertaintyOut(
-        U=r["U"],
-        D=r["D"],
-        var_g=r["var_g"],
-        n=r["n"],
+        U=r.U,
+        D=r.D,
+        var_g=r.var_g,
+        n=r.n,
         threshold=robot.slot.threshold,
-        samples=r["samples"].tolist(),
-        vectors=r["vectors"].tolist(),
-        labels=r["labels"].tolist(),
-        means=r["means"].tolist(),
-        weights=r["weights"].tolist(),
+        samples=r.samples.tolist(),
+        vectors=r.vectors.tolist(),
+        labels=r.labels.tolist(),
+        means=r.means.tolist(),
+        weights=r.weights.tolist(),
     )
 
 
