@@ -102,41 +102,48 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+_UNCERTAINTY_ARGS = {  # flag -> UncertaintyConfig field; the defaults live in UncertaintyConfig only
+    "samples": "num_samples",
+    "radius": "radius",
+    "max_modes": "max_modes",
+    "criterion": "criterion",
+    "alpha": "alpha",
+    "backend": "backend",
+}
+
+
 def _uncertainty_config(args: argparse.Namespace):
     from policy.uncertainty import UncertaintyConfig
 
-    return UncertaintyConfig(
-        num_samples=args.samples,
-        radius=args.radius,
-        max_modes=args.max_modes,
-        criterion=args.criterion,
-        alpha=args.alpha,
-        backend=args.backend,
-    )
+    given = {f: getattr(args, a) for a, f in _UNCERTAINTY_ARGS.items() if getattr(args, a) is not None}
+    return UncertaintyConfig(**given)
 
 
 def _add_uncertainty_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--samples", type=int, default=128, help="probe samples S per robot")
-    p.add_argument("--radius", type=float, default=0.05, help="probe radius r (normalized action space)")
-    p.add_argument("--max-modes", type=int, default=4)
-    p.add_argument("--criterion", choices=["bic", "likelihood"], default="bic")
-    p.add_argument("--alpha", type=float, default=0.1)
-    p.add_argument("--backend", choices=["torch", "sklearn"], default="torch")
+    from policy.gmm import BACKENDS, CRITERIA
+    from policy.uncertainty import UncertaintyConfig
+
+    d = UncertaintyConfig()
+    p.add_argument("--samples", type=int, help=f"probe samples S per robot (default {d.num_samples})")
+    p.add_argument("--radius", type=float, help=f"probe radius r, normalized action space (default {d.radius})")
+    p.add_argument("--max-modes", type=int, help=f"default {d.max_modes}")
+    p.add_argument("--criterion", choices=list(CRITERIA), help=f"default {d.criterion}")
+    p.add_argument("--alpha", type=float, help=f"default {d.alpha}")
+    p.add_argument("--backend", choices=list(BACKENDS), help=f"default {d.backend}")
 
 
 def _cmd_rollout(args: argparse.Namespace) -> int:
     import torch
 
     from policy.evaluate import rollout_policy, summarize
-    from policy.uncertainty import UncertaintyEstimator
 
     if args.threads:
         torch.set_num_threads(args.threads)
     policy, info, calibration = _policy_with(args)
-    estimator = None if args.no_uncertainty else UncertaintyEstimator(_uncertainty_config(args))
+    uncertainty = None if args.no_uncertainty else _uncertainty_config(args)
     seeds = list(range(args.seed, args.seed + args.episodes))
     episodes, timing = rollout_policy(
-        policy, args.task, seeds, n_envs=args.envs, estimator=estimator, progress=not args.quiet
+        policy, args.task, seeds, n_envs=args.envs, uncertainty=uncertainty, progress=not args.quiet
     )
     out = {
         "policy": str(args.policy),
@@ -145,7 +152,7 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
         **summarize(episodes),
         "seconds": round(timing["seconds"], 1),
     }
-    if calibration and estimator is not None:
+    if calibration and uncertainty is not None:
         thr = calibration["threshold"]
         above = [sum(u >= thr for u in e.uncertainty) for e in episodes]
         out["threshold"] = {
@@ -209,7 +216,6 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 
     from policy.evaluate import context_for, rollout_policy
     from policy.plots import plot_field, plot_timeline
-    from policy.uncertainty import UncertaintyEstimator
 
     policy, info, calibration = _policy_with(args)
     threshold = calibration["threshold"] if calibration else None
@@ -219,7 +225,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
         args.task,
         seeds,
         n_envs=min(4, len(seeds)),
-        estimator=UncertaintyEstimator(_uncertainty_config(args)),
+        uncertainty=_uncertainty_config(args),
         keep_fields=True,
         progress=not args.quiet,
     )
@@ -267,7 +273,6 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     from policy.bench import bench_uncertainty
     from policy.evaluate import rollout_policy
-    from policy.uncertainty import UncertaintyEstimator
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -279,7 +284,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         task,
         seeds,
         n_envs=min(4, len(seeds)),
-        estimator=UncertaintyEstimator(_uncertainty_config(args)),
+        uncertainty=_uncertainty_config(args),
         keep_fields=True,
         progress=not args.quiet,
     )

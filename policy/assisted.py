@@ -1,11 +1,13 @@
 """Assisted rollouts: a driver signal decides when the simulated operator (the task's scripted
 expert) takes over; every other signal runs in shadow on the same trajectory.
 
-At each takeover the operator picks up where the scene stands (``Expert.resume``: an object
-already held is lifted, not dropped to start over). Per step and robot: the policy samples a
-chunk (robots under teleop too: that is the robot's would-be action for switch-back rules and
-for the signals); every signal scores every robot; the driver's ``wants_help`` (with the teleop
-flags) starts or ends takeovers.
+The episodes run through the fleet's ``Controller`` (``policy.lockstep``), so a robot that asks
+holds for one step, exactly as a served robot does while its operator claims it, and is then
+driven by the operator. At each takeover the operator picks up where the scene stands
+(``Expert.resume``: an object already held is lifted, not dropped to start over). Every signal
+scores every robot the policy or the operator moves (under teleop, the policy's would-be chunk
+feeds switch-back rules); the driver's ``wants_help`` (with the teleop flags) starts or ends
+takeovers.
 
 Modes, as in the paper: ``budgeted`` gives the operator ``budget`` steps per assistance event;
 ``continuous`` keeps the operator in control until the driver no longer wants help (for
@@ -16,19 +18,21 @@ On hand-back the policy restarts from the current pose with a fresh observation 
 from __future__ import annotations
 
 import time
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
+from policy.controller import HAND_BACK, Controller, ControllerConfig, RobotStep
 from policy.diffusion_policy import DiffusionPolicy
-from policy.signals.base import AssistanceSignal, SignalInput, TriggerState
+from policy.lockstep import run_lockstep
+from policy.signals.base import AssistanceSignal
 from sim.env import Task
 from sim.registry import make_expert, make_task
+from sim.spaces import TeleopCommand
+from storage import keys
 
-MODES = ("budgeted", "continuous")
+MODES = HAND_BACK
 
 
 @dataclass(frozen=True)
@@ -55,6 +59,7 @@ class AssistedEpisode:
     success: bool = False
     steps: int = 0
     operator: list[bool] = field(default_factory=list)  # who executed each step
+    actions: list[np.ndarray] = field(default_factory=list)  # the action sent at each step (10,)
     policy_in_control: list[bool] = field(default_factory=list)  # before each step's decision
     events: int = 0  # assistance requests by the driver
     scores: dict[str, list[float]] = field(default_factory=dict)  # every signal, every step
@@ -74,91 +79,22 @@ class AssistedEpisode:
         }
 
 
-def _run_wave(
-    policy: DiffusionPolicy,
-    tasks: list[Task],
-    seeds: list[int],
-    first_id: int,
-    driver: AssistanceSignal,
-    shadow: dict[str, AssistanceSignal],
-    cfg: AssistConfig,
-    bar: tqdm,
-) -> list[AssistedEpisode]:
-    n, h = len(seeds), policy.config.obs_horizon
-    ids = np.arange(first_id, first_id + n)
-    signals = {driver.name: driver, **shadow}
-    for s in signals.values():
-        s.reset(ids)
-    experts = [make_expert(t.name) for t in tasks]
-    obs = [t.reset(s) for t, s in zip(tasks, seeds, strict=True)]
-    histories = [deque([torch.as_tensor(o, dtype=torch.float32)] * h, maxlen=h) for o in obs]
-    queues: list[deque] = [deque() for _ in range(n)]
-    teleop = np.zeros(n, dtype=bool)
-    budget = np.zeros(n, dtype=int)
-    episodes = [
-        AssistedEpisode(t.name, s, driver.name, scores={k: [] for k in signals}, wants={k: [] for k in signals})
-        for t, s in zip(tasks, seeds, strict=True)
-    ]
-    active = np.ones(n, dtype=bool)
-    g = torch.Generator().manual_seed(cfg.seed + first_id)
-    while active.any():
-        live = np.flatnonzero(active)
-        hist = torch.stack([torch.stack(list(histories[i])) for i in live])
-        chunks = policy.predict_action_chunk(hist, generator=g)  # (L, C, 10): also the would-be action under teleop
-        current = np.stack([tasks[i].hold_action() for i in live]).astype(np.float32)
-        operator = np.full((len(live), 10), np.nan, dtype=np.float32)
-        for j, i in enumerate(live):
-            if teleop[i]:
-                operator[j] = tasks[i].teleop(experts[i].act(tasks[i])).action
-        batch = SignalInput(hist, current, ids[live], action=chunks, operator_action=torch.as_tensor(operator))
-        state = TriggerState(ids[live], teleop[live].copy())
-        decisions = {}
-        for name, signal in signals.items():
-            scores = signal.score(batch)
-            decisions[name] = signal.wants_help(scores, state)
-            for j, i in enumerate(live):
-                episodes[i].scores[name].append(float(scores.value[j]))
-                episodes[i].wants[name].append(bool(decisions[name][j]))
-        ask = decisions[driver.name]
-        for j, i in enumerate(live):
-            episodes[i].policy_in_control.append(not teleop[i])
-            if not teleop[i] and ask[j]:  # the robot holds and asks; the operator answers this step
-                teleop[i], budget[i] = True, cfg.budget
-                episodes[i].events += 1
-                experts[i].resume(tasks[i], np.random.default_rng([seeds[i], episodes[i].events]))
-                operator[j] = tasks[i].teleop(experts[i].act(tasks[i])).action
-            elif teleop[i] and cfg.mode == "continuous" and not ask[j]:
-                teleop[i] = False
-                _hand_back(histories[i], queues[i], obs[i])
-        for j, i in enumerate(live):
-            if teleop[i]:
-                action = operator[j].astype(np.float64)
-            else:
-                if not queues[i]:
-                    queues[i].extend(chunks[j, : policy.config.n_action_steps].numpy())
-                action = queues[i].popleft().astype(np.float64)
-            result = tasks[i].step(action)
-            ep = episodes[i]
-            ep.operator.append(bool(teleop[i]))
-            ep.steps = result.t
-            obs[i] = result.obs
-            histories[i].append(torch.as_tensor(result.obs, dtype=torch.float32))
-            if teleop[i] and cfg.mode == "budgeted":
-                budget[i] -= 1
-                if budget[i] == 0:
-                    teleop[i] = False
-                    _hand_back(histories[i], queues[i], obs[i])
-            if result.success or result.done:
-                ep.success = bool(result.success)
-                active[i] = False
-                bar.update(1)
-    return episodes
+class ExpertOperator:
+    """The task's scripted expert as the simulated operator: at each takeover it picks up where the
+    scene stands (``Expert.resume``, seeded by the episode seed and the event count)."""
 
+    def __init__(self, task_name: str, seeds: list[int]) -> None:
+        self.task_name, self.seeds = task_name, seeds
+        self.experts: dict[int, object] = {}
+        self.events: dict[int, int] = {}
 
-def _hand_back(history: deque, queue: deque, obs: np.ndarray) -> None:
-    """The policy restarts from the current pose with a fresh observation history."""
-    queue.clear()
-    history.extend([torch.as_tensor(obs, dtype=torch.float32)] * history.maxlen)
+    def take_over(self, robot_id: int, task: Task) -> None:
+        self.events[robot_id] = self.events.get(robot_id, 0) + 1
+        expert = self.experts.setdefault(robot_id, make_expert(self.task_name))
+        expert.resume(task, np.random.default_rng([self.seeds[robot_id], self.events[robot_id]]))
+
+    def command(self, robot_id: int, task: Task) -> TeleopCommand:
+        return self.experts[robot_id].act(task)
 
 
 def run_assisted(
@@ -170,26 +106,48 @@ def run_assisted(
     config: AssistConfig | None = None,
     progress: bool = True,
 ) -> tuple[list[AssistedEpisode], dict]:
-    """One assisted episode per seed, in waves of ``n_envs`` robots stepping in lockstep."""
+    """One assisted episode per seed, in waves of ``n_envs`` robots stepping in lockstep through the
+    fleet's ``Controller``: a robot that asks holds for one step while the simulated operator takes
+    over, then the operator's commands drive it until control returns."""
     cfg = config or AssistConfig()
     shadow = {k: v for k, v in (shadow or {}).items() if k != driver.name}
-    tasks = [make_task(task_name) for _ in range(min(cfg.n_envs, len(seeds)))]
-    if tasks[0].obs_spec.dim != policy.config.obs_dim:
-        raise ValueError(
-            f"policy expects {policy.config.obs_dim}-dim observations, task {task_name} gives {tasks[0].obs_spec.dim}"
-        )
-    episodes: list[AssistedEpisode] = []
+    signals = {driver.name: driver, **shadow}
+    controller = Controller(
+        policy,
+        signals,
+        driver.name,
+        make_task(task_name).action_space,
+        ControllerConfig(hand_back=cfg.mode, budget=cfg.budget, seed=cfg.seed),
+    )
+    episodes = [
+        AssistedEpisode(task_name, s, driver.name, scores={k: [] for k in signals}, wants={k: [] for k in signals})
+        for s in seeds
+    ]
+
+    def record(rid: int, task: Task, step: RobotStep) -> None:
+        ep = episodes[rid]
+        ep.operator.append(step.source == keys.SOURCE_OPERATOR)
+        ep.actions.append(step.action)
+        ep.policy_in_control.append(step.source == keys.SOURCE_POLICY or step.asked)
+        ep.events += int(step.asked)
+        for name in signals:  # NaN / False on the hold step while the operator takes over (not scored)
+            ep.scores[name].append(step.scores.get(name, float("nan")))
+            ep.wants[name].append(step.wants.get(name, False))
+
     start = time.perf_counter()
-    bar = tqdm(total=len(seeds), desc=f"assisted {task_name} ({driver.name})", disable=not progress, unit="ep")
-    try:
-        with torch.no_grad():
-            for w in range(0, len(seeds), len(tasks)):
-                wave = seeds[w : w + len(tasks)]
-                episodes += _run_wave(policy, tasks[: len(wave)], wave, w, driver, shadow, cfg, bar)
-    finally:
-        bar.close()
-        for t in tasks:
-            t.close()
+    with torch.no_grad():
+        outcomes = run_lockstep(
+            controller,
+            task_name,
+            seeds,
+            cfg.n_envs,
+            record,
+            ExpertOperator(task_name, seeds),
+            progress,
+            f"assisted {task_name} ({driver.name})",
+        )
+    for ep, out in zip(episodes, outcomes, strict=True):
+        ep.success, ep.steps = out.success, out.steps
     return episodes, {"seconds": time.perf_counter() - start}
 
 

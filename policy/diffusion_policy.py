@@ -172,12 +172,26 @@ class DiffusionPolicy(nn.Module):
 
     # -- inference ---------------------------------------------------------------------
     @torch.no_grad()
-    def predict_action_chunk(self, obs: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """obs: (B, H, obs_dim) raw -> (B, C, action_dim) raw actions, by DDIM from Gaussian noise."""
+    def predict_action_chunk(
+        self, obs: torch.Tensor, generator: torch.Generator | None = None, noise: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """obs: (B, H, obs_dim) raw -> (B, C, action_dim) raw actions, by DDIM from Gaussian noise.
+
+        noise: (B, C, action_dim) the starting noise (e.g. drawn per robot); drawn from ``generator``
+        (or the policy's own) when None.
+        """
         cfg = self.config
         cond = self._obs_cond(obs)
         b = cond.shape[0]
-        x = torch.randn((b, 1, cfg.action_horizon, cfg.action_dim), generator=generator or self._generator)
+        shape = (b, 1, cfg.action_horizon, cfg.action_dim)
+        if noise is None:
+            x = torch.randn(shape, generator=generator or self._generator)
+        elif tuple(noise.shape) != (b, cfg.action_horizon, cfg.action_dim):
+            raise ValueError(
+                f"noise must have shape {(b, cfg.action_horizon, cfg.action_dim)}, got {tuple(noise.shape)}"
+            )
+        else:
+            x = noise.reshape(shape).float()
         steps = self.schedule.ddim_timesteps(cfg.num_inference_steps)
         for i, k in enumerate(steps):
             eps = self._eps(x, torch.full((b,), k, dtype=torch.long), cond)

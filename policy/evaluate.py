@@ -1,8 +1,9 @@
 """Autonomous policy rollouts on the simulated tasks, with per-step uncertainty.
 
 ``rollout_policy`` runs episodes in waves of ``n_envs`` simulated robots that
-step in lockstep, so the policy and the uncertainty estimator are called once
-per control step for the whole wave, as they are for a fleet.
+step in lockstep (``policy.lockstep``) through the fleet's ``Controller``: the
+policy and the uncertainty are called once per control step for the whole
+wave, and chunks are queued exactly as the fleet serves them.
 """
 
 from __future__ import annotations
@@ -12,10 +13,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
+from policy.controller import Controller, ControllerConfig, RobotStep
 from policy.diffusion_policy import DiffusionPolicy
-from policy.uncertainty import UncertaintyEstimator, UncertaintyResult
+from policy.lockstep import run_lockstep
+from policy.signals.sampling import DenoisingConfig, DenoisingSignal
+from policy.uncertainty import UncertaintyConfig, UncertaintyResult
 from sim.env import Task
 from sim.registry import make_task
 
@@ -74,83 +77,48 @@ def context_for(task_name: str):
     return CONTEXT["lift" if task_name.startswith("lift") else task_name]
 
 
-def _run_wave(
-    policy: DiffusionPolicy,
-    tasks: list[Task],
-    seeds: list[int],
-    estimator: UncertaintyEstimator | None,
-    keep_fields: bool,
-    bar: tqdm,
-    trace: bool = False,
-) -> list[PolicyEpisode]:
-    n = len(seeds)
-    obs = np.stack([t.reset(s) for t, s in zip(tasks, seeds, strict=True)])
-    policy.reset(seed=seeds[0])
-    episodes = [PolicyEpisode(tasks[i].name, seeds[i], False, 0, {}) for i in range(n)]
-    active = np.ones(n, dtype=bool)
-    while active.any():
-        action = policy.select_action(torch.as_tensor(obs, dtype=torch.float32)).numpy().astype(np.float64)
-        history = policy.observation_history()
-        if estimator is not None or trace:
-            current = np.stack([t.hold_action() for t in tasks[:n]]).astype(np.float32)
-        if estimator is not None:
-            center = policy.normalize_action(torch.as_tensor(current))
-            batch = estimator(policy.noise_prediction, history, center, chunk=policy.config.action_horizon)
-        for i in np.flatnonzero(active):
-            ep = episodes[i]
-            if estimator is not None:
-                ep.uncertainty.append(float(batch.U[i]))
-                ep.modes.append(int(batch.fit.n[i]))
-                if keep_fields:
-                    ep.fields.append(batch.robot(i))
-                    ep.probe_inputs.append((history[i].numpy(), center[i].numpy()))
-            if keep_fields:
-                ep.context.append(context_for(tasks[i].name)[1](tasks[i]))
-            if trace:
-                ep.trace.append((history[i].numpy(), current[i], action[i].astype(np.float32)))
-            result = tasks[i].step(action[i])
-            obs[i] = result.obs
-            ep.steps = result.t
-            if result.success or result.done:
-                ep.success = bool(result.success)
-                ep.info = tasks[i].episode_info()
-                active[i] = False
-                bar.update(1)
-    return episodes
-
-
 def rollout_policy(
     policy: DiffusionPolicy,
     task_name: str,
     seeds: list[int],
     n_envs: int = 4,
-    estimator: UncertaintyEstimator | None = None,
+    uncertainty: UncertaintyConfig | None = None,
     keep_fields: bool = False,
     progress: bool = True,
     trace: bool = False,
+    seed: int = 0,
 ) -> tuple[list[PolicyEpisode], dict]:
-    """Runs one autonomous episode per seed; an episode ends at success or at the task horizon.
+    """Runs one autonomous episode per seed through the controller; an episode ends at success or
+    at the task horizon. ``uncertainty``: score the denoising metric at every step with these
+    settings (the fleet's shadow scoring); ``keep_fields`` keeps every step's field, probe inputs
+    and task context; ``trace`` keeps every step's observation history, probe centre and executed
+    action; ``seed``: the controller's sampling seed. Returns (episodes, timing)."""
+    signals = {}
+    if uncertainty is not None:
+        signals["denoising"] = DenoisingSignal(policy, DenoisingConfig.from_uncertainty(uncertainty))
+    controller = Controller(policy, signals, None, make_task(task_name).action_space, ControllerConfig(seed=seed))
+    episodes = [PolicyEpisode(task_name, s, False, 0, {}) for s in seeds]
 
-    ``trace`` keeps every step's observation history, current pose action and executed action.
-    Returns (episodes, timing).
-    """
-    if n_envs < 1:
-        raise ValueError(f"n_envs must be >= 1, got {n_envs}")
-    tasks = [make_task(task_name) for _ in range(min(n_envs, len(seeds)))]
-    obs_dim = tasks[0].obs_spec.dim
-    if obs_dim != policy.config.obs_dim:
-        raise ValueError(f"policy expects {policy.config.obs_dim}-dim observations, task {task_name} gives {obs_dim}")
-    episodes: list[PolicyEpisode] = []
+    def record(rid: int, task: Task, step: RobotStep) -> None:
+        ep = episodes[rid]
+        if step.uncertainty is not None:
+            ep.uncertainty.append(step.uncertainty.U)
+            ep.modes.append(step.uncertainty.n)
+            if keep_fields:
+                ep.fields.append(step.uncertainty)
+                center = policy.normalize_action(torch.as_tensor(step.current)).numpy()
+                ep.probe_inputs.append((step.obs, center))
+        if keep_fields:
+            ep.context.append(context_for(task.name)[1](task))
+        if trace:
+            ep.trace.append((step.obs, step.current, step.action.astype(np.float32)))
+
     start = time.perf_counter()
-    bar = tqdm(total=len(seeds), desc=f"rollout {task_name}", disable=not progress, unit="ep")
-    try:
-        for w in range(0, len(seeds), len(tasks)):
-            wave = seeds[w : w + len(tasks)]
-            episodes += _run_wave(policy, tasks[: len(wave)], wave, estimator, keep_fields, bar, trace)
-    finally:
-        bar.close()
-        for t in tasks:
-            t.close()
+    outcomes = run_lockstep(
+        controller, task_name, seeds, n_envs, record, progress=progress, desc=f"rollout {task_name}"
+    )
+    for ep, out in zip(episodes, outcomes, strict=True):
+        ep.success, ep.steps, ep.info = out.success, out.steps, out.info
     return episodes, {"seconds": time.perf_counter() - start}
 
 

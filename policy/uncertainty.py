@@ -30,8 +30,8 @@ import numpy as np
 import torch
 
 from policy.gmm import BACKENDS, CRITERIA, MixtureFit, fit_mixtures
+from sim.spaces import POS
 
-POS = slice(0, 3)
 EpsFn = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
 
 
@@ -85,6 +85,30 @@ class UncertaintyResult:
     D: float
     var_g: float
     U: float
+
+    def to_world(self, normalizer) -> WorldField:
+        """The probe samples in metres (world frame) and the denoising directions (-ε, rescaled per
+        axis from the normalized action space by ``normalizer``, the policy's action normalizer), for
+        the console's and the segments' arrows."""
+        low = normalizer.low[POS].numpy().astype(np.float64)
+        span = normalizer.span[POS].numpy().astype(np.float64)
+        return WorldField(self.samples * span + low, -self.vectors * span, self.labels, self.means * span)
+
+
+@dataclass(frozen=True)
+class WorldField:
+    """A denoising field in world units. samples: (S, 3) m; vectors: (S, 3) denoising directions in
+    m per unit noise; labels: (S,) mode of each sample; means: (n, 3) mode means (noise, world-scaled)."""
+
+    samples: np.ndarray
+    vectors: np.ndarray
+    labels: np.ndarray
+    means: np.ndarray
+
+    def arrow_scale(self, longest: float = 0.02) -> float:
+        """Metres per unit vector so that the longest arrow is ``longest`` metres (0 for a null field)."""
+        top = float(np.linalg.norm(self.vectors, axis=1).max()) if len(self.vectors) else 0.0
+        return longest / top if top > 0 else 0.0
 
 
 @dataclass

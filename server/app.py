@@ -19,6 +19,7 @@ from sqlalchemy import select
 
 from server.api import assistance, records, robots, system
 from server.db import SegmentRecord, make_engine, migrate, session_factory
+from server.errors import ServiceError
 from server.fleet import Fleet
 from server.settings import Settings
 from storage.segments import SegmentReadError, read_segment
@@ -125,6 +126,10 @@ def create_app(settings: Settings) -> FastAPI:
         description="Robots ask for help when their denoising uncertainty is high; operators take over.",
         lifespan=lifespan,
     )
+
+    @app.exception_handler(ServiceError)
+    async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
+        return JSONResponse({"detail": exc.message}, status_code=exc.status)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:

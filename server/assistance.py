@@ -11,13 +11,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-
-class QueueError(Exception):
-    """status: the HTTP status the API maps this to (404 unknown, 409 conflict)."""
-
-    def __init__(self, status: int, message: str) -> None:
-        super().__init__(message)
-        self.status = status
+from server.errors import ServiceError
 
 
 @dataclass
@@ -71,9 +65,9 @@ class AssistanceQueue:
         with self._lock:
             req = self._by_robot.get(robot_id)
             if req is None:
-                raise QueueError(404, f"robot {robot_id} has no open assistance request")
+                raise ServiceError(404, f"robot {robot_id} has no open assistance request")
             if req.holder is not None and req.holder != operator and req.lease_until and req.lease_until > now:
-                raise QueueError(409, f"robot {robot_id} is already controlled by another operator")
+                raise ServiceError(409, f"robot {robot_id} is already controlled by another operator")
             if req.holder is None:
                 self.waits.append(now - req.created)
             req.holder, req.lease_until, req.claimed_at = operator, now + self.lease_seconds, now
@@ -92,9 +86,9 @@ class AssistanceQueue:
     def _holder_check(self, robot_id: int, operator: str) -> AssistanceRequest:
         req = self._by_robot.get(robot_id)
         if req is None:
-            raise QueueError(404, f"robot {robot_id} has no open assistance request")
+            raise ServiceError(404, f"robot {robot_id} has no open assistance request")
         if req.holder != operator:
-            raise QueueError(409, f"robot {robot_id} is not controlled by you: claim it first")
+            raise ServiceError(409, f"robot {robot_id} is not controlled by you: claim it first")
         return req
 
     def close(self, robot_id: int) -> AssistanceRequest | None:

@@ -8,7 +8,8 @@ For each fleet size N, measured in the same run:
   (``assistance = false``: a waiting robot only holds, which would make the fleet cheaper the
   longer it runs), so every robot but one is driven by the policy and scored at every step.
   Robot 0 is under teleop (taken over again at each new episode) and receives operator commands
-  at ``command_hz`` from another thread, as from a teleop device (the newest command wins).
+  at ``command_hz`` from another thread, as from a teleop device (commands that arrive between two
+  ticks compose into one step).
   Reported: ticks/s, tick period p50/p99, total env steps/s, the control loop's CPU per env
   step, the teleoperated robot's action period (its control period: a tick moves only the
   robots whose physics has answered) and command-to-applied latency p50/p99 (from the command's
@@ -30,9 +31,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from server.assistance import QueueError
 from server.db import make_engine, migrate, session_factory
-from server.fleet import Fleet, FleetError
+from server.errors import ServiceError
+from server.fleet import Fleet
 from server.settings import RobotGroup, Settings
 from sim.spaces import TeleopCommand
 
@@ -70,15 +71,9 @@ def raw_throughput(task: str, n: int, seconds: float) -> float:
 
 
 def _take_over(fleet: Fleet) -> None:
-    """Robot 0 asks for help and the bench operator claims it, in continuous mode."""
-    with fleet.lock:
-        r0 = fleet.robots[0]
-        if r0.frame is None:
-            raise FleetError(409, "robot 0 is between episodes")
-        r0.mode, r0.hold_target = "waiting", r0.frame["hold"].copy()
-        fleet.queue.open(0, 1.0, 1.0, "benchmark")
+    """Robot 0 asks for help and the bench operator claims it (continuous mode: it keeps control)."""
+    fleet.request_help(0, "benchmark")
     fleet.claim(0, "bench")
-    fleet.robots[0].teleop_left = None
 
 
 def fleet_throughput(
@@ -91,6 +86,7 @@ def fleet_throughput(
         lease_seconds=3600,
         torch_threads=torch_threads,
         assistance=False,  # every other robot stays under the policy: the full per-step cost, all the time
+        trigger_mode="continuous",  # with assistance off, the operator keeps robot 0 until its episode ends
     )
     migrate(settings.db_url)
     fleet = Fleet(settings, session_factory(make_engine(settings.db_url)))
@@ -98,16 +94,19 @@ def fleet_throughput(
     stop = threading.Event()
     try:
         deadline = time.monotonic() + 120
-        while any(r.frame is None for r in fleet.robots.values()) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        _take_over(fleet)
+        while time.monotonic() < deadline:
+            try:
+                _take_over(fleet)
+                break
+            except ServiceError:  # robot 0's simulator is still starting
+                time.sleep(0.2)
 
-        def operator() -> None:  # a teleop device streaming at command_hz; the newest command wins
+        def operator() -> None:  # a teleop device streaming at command_hz; commands between ticks compose
             while not stop.wait(1.0 / command_hz):
                 try:
                     fleet.command(0, "bench", TeleopCommand((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), -1.0))
-                except (QueueError, FleetError):  # its episode ended: take the next one over too
-                    with contextlib.suppress(QueueError, FleetError):
+                except ServiceError:  # its episode ended: take the next one over too
+                    with contextlib.suppress(ServiceError):
                         _take_over(fleet)
 
         threading.Thread(target=operator, daemon=True).start()

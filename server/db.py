@@ -55,6 +55,11 @@ class PolicyVersion(Base):
     task: Mapped[str] = mapped_column(String(64))
     threshold: Mapped[float | None] = mapped_column(Float, nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    status: Mapped[str] = mapped_column(String(16), default="candidate", index=True)  # see POLICY_STATUSES
+    parent_id: Mapped[int | None] = mapped_column(ForeignKey("policy_versions.id"), nullable=True)
+
+
+POLICY_STATUSES = ("candidate", "active", "retired")
 
 
 class EpisodeRecord(Base):

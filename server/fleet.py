@@ -1,243 +1,165 @@
-"""The fleet runtime: robots in worker processes, the policy and its uncertainty batched across the
-fleet in the server, robot modes, takeovers and their recording.
+"""The fleet runtime: the control loop over the robot workers, and the service methods the API calls.
 
-One control tick: collect every worker's latest frame (without waiting on any); for the robots
-that are ready and moving (autonomous, or teleoperated with a command pending), one batched
-action sample and one batched evaluation of every signal per policy; then each ready robot gets
-its next action: the policy's, the operator's command, or a hold of the pose it had when it
-stopped (no drift). Workers run at a lower CPU priority than the control loop
-(``worker_niceness``): on a machine with fewer cores than robots, the batched policy step must
+One control tick: collect every worker's latest frame (without waiting on any); for the robots that
+are ready (a new frame, not paused), one ``Controller.step`` per policy slot: the policy and every
+signal batched across that slot's robots, operator and hold actions sent before the batch is
+computed. Workers whose robot is under teleop get the control loop's priority, the others a lower
+one (``worker_niceness``): on a machine with fewer cores than robots, the batched policy step must
 not queue behind the physics it feeds.
 
-Modes: ``autonomous -> waiting -> teleop -> autonomous``, plus ``paused`` (not stepped: the scene
-and the episode clock are frozen), ``done`` (then the next episode starts) and ``faulted`` (the
-worker died; it is restarted with backoff).
+Modes: ``autonomous -> waiting -> teleop -> autonomous`` (the controller's), plus ``paused`` (not
+stepped: the scene and the episode clock are frozen), ``done`` (then the next episode starts) and
+``faulted`` (the worker died; it is restarted with backoff).
+
+Policies swap without a restart: ``activate_policy`` loads the new version outside the fleet lock;
+each robot of its task moves to it at its next episode boundary, and a robot in the middle of an
+episode finishes it on the version it started with.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import multiprocessing as mp
-import os
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field, fields
-from datetime import UTC, datetime
-from multiprocessing.connection import wait
 from pathlib import Path
 
 import numpy as np
 import torch
+from sqlalchemy import select
 from sqlalchemy.orm import sessionmaker
 
-from policy.checkpoint import load_policy
-from policy.signals import SignalError, load_signal
-from policy.signals.base import Scores, SignalInput, TriggerState
-from policy.uncertainty import UncertaintyResult
-from server.assistance import AssistanceQueue, QueueError
-from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
+from policy.checkpoint import CheckpointError, read_info
+from policy.controller import Mode, RobotStep
+from server.assistance import AssistanceQueue
+from server.commands import CommandMailbox
+from server.db import PolicyVersion
+from server.errors import ServiceError
+from server.recording import Recorder
+from server.robot import MODES, Robot, RobotView
 from server.settings import Settings
-from server.worker import worker_main
+from server.slots import PolicySlot, load_slot
+from server.workers import WORKERS, Priority, WorkerFactory, WorkerFault, wait_any
+from sim.frame import RobotFrame
 from sim.registry import make_task
 from sim.spaces import TeleopCommand
 from storage import keys
-from storage.episodes import EpisodeWriter
-from storage.segments import SegmentWriter
 
 log = logging.getLogger("hitl.fleet")
 
-MODES = ("autonomous", "waiting", "teleop", "paused", "done", "faulted")
-U_HISTORY = 300
 RESTART_BACKOFF = (1.0, 2.0, 5.0, 10.0, 30.0)
 
 
-class FleetError(Exception):
-    def __init__(self, status: int, message: str) -> None:
-        super().__init__(message)
-        self.status = status
-
-
-@dataclass
-class PolicySlot:
-    id: int
-    path: Path
-    policy: object
-    task: str
-    threshold: float  # the denoising metric's (what the console draws U against)
-    signals: dict  # name -> AssistanceSignal; always holds "denoising"
-    active: str  # the signal that asks for help
-
-    def score(self, batch: SignalInput) -> dict:
-        return {name: signal.score(batch) for name, signal in self.signals.items()}
-
-    def reset(self, robot_ids: list[int]) -> None:
-        for signal in self.signals.values():
-            signal.reset(robot_ids)
-
-
-@dataclass(frozen=True)
-class RobotView:
-    """A robot as the API shows it, copied at the end of each tick and after each service call."""
-
-    id: int
-    task: str
-    slot: PolicySlot
-    mode: str
-    episode_id: int | None
-    steps: int
-    u_history: tuple
-    frame: dict | None
-    last_result: UncertaintyResult | None
-    episodes_done: int
-    successes: int
-    assisted_steps: int
-    events: int
-    restarts: int
-    fault: str | None
-
-
-@dataclass
-class Robot:
-    id: int
-    task: str
-    slot: PolicySlot
-    action_space: object
-    seed: int
-    process: mp.Process | None = None
-    conn: object | None = None
-    mode: str = "autonomous"
-    frame: dict | None = None
-    awaiting: bool = False
-    history: deque = field(default_factory=deque)
-    hold_target: np.ndarray | None = None
-    command: tuple[TeleopCommand, float] | None = None  # (command, monotonic receive time)
-    applied: tuple | None = None  # (command, teleop target) sent this tick, awaiting its shadow scores
-    teleop_left: int | None = None
-    below: int = 0
-    episode_id: int | None = None
-    steps: int = 0
-    assisted_steps: int = 0
-    events: int = 0
-    episodes_done: int = 0
-    successes: int = 0
-    u_history: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))
-    last_result: UncertaintyResult | None = None
-    segment: SegmentWriter | None = None
-    segment_id: int | None = None
-    restarts: int = 0
-    restart_at: float | None = None
-    fault: str | None = None
-    paused_from: str | None = None
-    latencies: deque = field(default_factory=lambda: deque(maxlen=1000))
-    action_periods: deque = field(default_factory=lambda: deque(maxlen=1000))  # seconds between actions sent
-    last_sent: float | None = None
-    niceness: int | None = None  # the worker's current CPU priority (None: not set since spawn)
-    recorder: EpisodeWriter | None = None  # whole-episode recording (settings.record_episodes)
-    pending_step: tuple | None = None  # the step sent, written once its outcome arrives
-    view: RobotView | None = None  # what readers see (``Fleet._publish``)
-
-
 class Fleet:
-    def __init__(self, settings: Settings, sessions: sessionmaker) -> None:
+    """workers: how robots are started (default: the settings' ``worker`` back end)."""
+
+    def __init__(self, settings: Settings, sessions: sessionmaker, workers: WorkerFactory | None = None) -> None:
         self.settings = settings
         self.sessions = sessions
         self.queue = AssistanceQueue(settings.lease_seconds)
+        self.recorder = Recorder(sessions, settings.data_dir, settings.record_episodes)
         self.robots: dict[int, Robot] = {}
-        self.slots: dict[str, PolicySlot] = {}
+        self.slots: dict[int, PolicySlot] = {}  # by policy version id
+        self.assigned: dict[str, PolicySlot] = {}  # task -> the slot its robots move to at their next episode
         self.lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._swap_lock = threading.Lock()  # one policy load at a time (outside the fleet lock)
         self.ticks = 0
         self.env_steps = 0  # actions sent to workers, all robots, since start
         self.tick_periods: deque = deque(maxlen=2000)
-        self._ctx = mp.get_context("spawn")
-        self._priority_denied = False
         self.loop_cpu_seconds = 0.0  # CPU time of the control loop's ticks
         self.operator_busy: dict[str, float] = {}  # seconds in control, per operator
         self.operator_since: dict[str, float] = {}  # first claim, per operator
+        if workers is None:
+            factory = WORKERS[settings.worker]
+            workers = factory(settings.worker_niceness) if settings.worker == "process" else factory()
+        self._make_worker = workers
         self._build()
 
     # -- set-up -------------------------------------------------------------------------------------------
-    def _slot(self, path: Path, task: str) -> PolicySlot:
-        key = str(path.resolve())
-        if key in self.slots:
-            return self.slots[key]
-        policy, info = load_policy(path)
-        obs_dim = make_task(task).obs_spec.dim
-        if policy.config.obs_dim != obs_dim:
-            raise FleetError(
-                500, f"policy {path} expects {policy.config.obs_dim}-dim observations, {task} gives {obs_dim}"
-            )
-        if self.settings.trace_policies:
-            policy.freeze_for_inference()
-        signals = {}
-        for name in dict.fromkeys([self.settings.signal, "denoising", *self.settings.shadow_signals]):
-            try:
-                signals[name] = load_signal(policy, path, name)
-            except (SignalError, ValueError) as exc:
-                raise FleetError(500, f"policy {path}: signal {name!r} is not ready: {exc}") from exc
-        with self.sessions() as s:
-            row = s.query(PolicyVersion).filter_by(path=key).one_or_none()
-            if row is None:
-                row = PolicyVersion(
-                    name=path.name, path=key, task=info.get("task", task), threshold=signals["denoising"].threshold
-                )
-                s.add(row)
-                s.commit()
-            pid = row.id
-        slot = PolicySlot(pid, path, policy, task, float(signals["denoising"].threshold), signals, self.settings.signal)
-        self.slots[key] = slot
-        return slot
-
     def _build(self) -> None:
         rid = 0
         for group in self.settings.robots:
-            slot = self._slot(group.policy_dir, group.task)
+            slot = self._serve(group.policy_dir, group.task)
+            limits = make_task(group.task).action_space.limits
             for _ in range(group.count):
-                task = make_task(group.task)  # its action space; the simulator lives in the worker
-                self.robots[rid] = Robot(rid, group.task, slot, task.action_space, self.settings.seed + 1000 * rid)
+                self.robots[rid] = Robot(rid, group.task, slot, self.settings.seed + 1000 * rid, CommandMailbox(limits))
                 rid += 1
 
-    # -- workers -------------------------------------------------------------------------------------------
+    def _serve(self, path: Path, task: str) -> PolicySlot:
+        """The configured policy of a robot group: registered (active) and loaded."""
+        key = str(Path(path).resolve())
+        with self.sessions() as s:
+            row = s.scalars(select(PolicyVersion).where(PolicyVersion.path == key)).one_or_none()
+            if row is None:
+                info = _policy_info(Path(key))
+                row = PolicyVersion(name=Path(key).name, path=key, task=info.get("task", task), status="active")
+                s.add(row)
+                s.commit()
+            version = row.id
+        if version not in self.slots:
+            self.slots[version] = load_slot(self.settings, Path(key), task, version)
+            with self.sessions() as s:
+                row = s.get(PolicyVersion, version)
+                row.threshold, row.status = self.slots[version].threshold, "active"
+                s.commit()
+        return self.slots[version]
+
+    # -- workers and episodes -------------------------------------------------------------------------------
     def _spawn(self, robot: Robot) -> None:
-        parent, child = self._ctx.Pipe()
-        proc = self._ctx.Process(target=worker_main, args=(child, robot.task), daemon=True, name=f"robot-{robot.id}")
-        proc.start()
-        child.close()
-        robot.process, robot.conn = proc, parent
-        robot.niceness, robot.last_sent = None, None
-        self._prioritize(robot)
+        robot.worker = self._make_worker(robot.id, robot.task)
+        robot.worker.prioritize(Priority.BACKGROUND)
         self._new_episode(robot)
 
     def _new_episode(self, robot: Robot) -> None:
-        robot.slot.reset([robot.id])
+        """The next episode, on the policy version assigned to the robot's task (hot swap)."""
+        target = self.assigned.get(robot.task)
+        if target is not None and target is not robot.slot:
+            robot.slot.controller.remove(robot.id)
+            robot.slot = target
         robot.seed += 1
+        robot.slot.controller.reset(robot.id, robot.seed)
         robot.steps = robot.assisted_steps = robot.events = 0
-        robot.history.clear()
-        robot.hold_target = None
+        robot.fresh = False  # the last frame stays on view until the reset's arrives
+        robot.commands.clear()
         robot.mode = "autonomous" if robot.mode != "paused" else "paused"
-        with self.sessions() as s:
-            row = EpisodeRecord(robot_id=robot.id, task=robot.task, seed=robot.seed, policy_id=robot.slot.id)
-            s.add(row)
-            s.commit()
-            robot.episode_id = row.id
-        robot.conn.send(("reset", robot.seed))
-        robot.awaiting = True
+        if robot.mode == "paused":
+            robot.paused_from = "autonomous"
+        robot.episode_id = self.recorder.open_episode(robot)
+        try:
+            robot.worker.request_reset(robot.seed)
+        except WorkerFault as exc:
+            self._fault(robot, str(exc))
+
+    def _end_episode(self, robot: Robot, frame: RobotFrame) -> None:
+        outcome = "success" if frame.success else "timeout"
+        self.recorder.close_episode_file(robot, frame.success, frame.t, outcome)
+        self.recorder.close_segment(robot, "closed")
+        self.queue.close(robot.id)
+        robot.mode = "done" if robot.mode != "paused" else "paused"
+        robot.episodes_done += 1
+        robot.successes += int(frame.success)
+        self.recorder.finish_episode(robot, outcome, frame.t)
+        self._new_episode(robot)
+
+    def _interrupt(self, robot: Robot, outcome: str, reason: str) -> None:
+        """Ends the episode early (fault, reset, shutdown): files and rows closed, request dropped."""
+        self.recorder.close_segment(robot, "closed")
+        self.recorder.close_episode_file(robot, None, robot.steps, reason)
+        self.recorder.finish_episode(robot, outcome)
+        self.queue.close(robot.id)
+        robot.commands.clear()
 
     def _fault(self, robot: Robot, why: str) -> None:
         log.warning("robot %d faulted: %s", robot.id, why.splitlines()[-1] if why else why)
-        self._close_segment(robot, "closed")
-        self._close_recorder(robot, None, robot.steps, "faulted")
-        self._finish_episode_row(robot, "faulted")
-        self.queue.close(robot.id)
-        robot.mode, robot.fault, robot.awaiting, robot.applied = "faulted", why, False, None
-        if robot.process is not None and robot.process.is_alive():
-            robot.process.kill()
-        robot.process = robot.conn = None
-        delay = RESTART_BACKOFF[min(robot.restarts, len(RESTART_BACKOFF) - 1)]
-        robot.restart_at = time.monotonic() + delay
+        self._interrupt(robot, "faulted", "faulted")
+        robot.slot.controller.remove(robot.id)
+        robot.mode, robot.fault, robot.fresh = "faulted", why, False
+        if robot.worker is not None:
+            robot.worker.kill()
+        robot.worker = None
+        robot.restart_at = time.monotonic() + RESTART_BACKOFF[min(robot.restarts, len(RESTART_BACKOFF) - 1)]
         robot.restarts += 1
 
     def start(self) -> None:
@@ -249,23 +171,18 @@ class Fleet:
         self._thread.start()
 
     def stop(self) -> None:
-        """Finishes the current tick, closes open segments, stops the workers."""
+        """Finishes the current tick, closes open segments and episodes, stops the workers."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=30)
         with self.lock:
             for robot in self.robots.values():
-                self._close_segment(robot, "closed")
-                self._close_recorder(robot, None, robot.steps, "service stopped")
-                self._finish_episode_row(robot, "stopped")
-                if robot.conn is not None:
-                    with contextlib.suppress(OSError, BrokenPipeError):
-                        robot.conn.send(("close", None))
+                self._interrupt(robot, "stopped", "service stopped")
+                if robot.worker is not None:
+                    robot.worker.close()
             for robot in self.robots.values():
-                if robot.process is not None:
-                    robot.process.join(timeout=5)
-                    if robot.process.is_alive():
-                        robot.process.kill()
+                if robot.worker is not None:
+                    robot.worker.join(timeout=5)
 
     # -- the control loop --------------------------------------------------------------------------------
     def _loop(self) -> None:
@@ -275,10 +192,7 @@ class Fleet:
             while not self._stop.is_set():
                 start = time.monotonic()
                 if not period:  # free-running: block until some worker answers, never spin
-                    with self.lock:
-                        pending = [r.conn for r in self.robots.values() if r.awaiting and r.conn is not None]
-                    if pending:
-                        wait(pending, timeout=0.05)
+                    wait_any([r.worker for r in self.robots.values() if r.worker is not None], 0.05)
                 cpu = time.thread_time()
                 try:
                     with self.lock:
@@ -298,330 +212,125 @@ class Fleet:
         finally:
             log.info("control loop stopped after %d ticks", self.ticks)
 
-    def _collect(self, robot: Robot) -> bool:
-        """Takes the worker's answer if there is one; returns True when the robot is ready."""
+    def _collect(self, robot: Robot) -> None:
+        """Takes the worker's answer if there is one (faults and restarts happen here)."""
         if robot.mode == "faulted":
             if robot.restart_at is not None and time.monotonic() >= robot.restart_at:
                 robot.fault, robot.restart_at, robot.mode = None, None, "autonomous"
                 self._spawn(robot)
-            return False
-        if robot.process is None or not robot.process.is_alive():
-            self._fault(
-                robot, f"worker process exited (code {None if robot.process is None else robot.process.exitcode})"
-            )
-            return False
-        if robot.awaiting:
-            try:
-                if not robot.conn.poll():
-                    return False
-                status, payload = robot.conn.recv()
-            except (EOFError, OSError) as exc:
-                self._fault(robot, f"worker pipe broke: {exc}")
-                return False
-            robot.awaiting = False
-            if status != "ok":
-                self._fault(robot, str(payload))
-                return False
-            robot.frame = payload
-            self._record(robot, payload)
-            obs = torch.as_tensor(payload["obs"])
-            if not robot.history:
-                robot.history.extend([obs] * robot.slot.policy.config.obs_horizon)
-            else:
-                robot.history.append(obs)
-            while len(robot.history) > robot.slot.policy.config.obs_horizon:
-                robot.history.popleft()
-            if payload["done"] and payload["t"] > 0:
-                self._end_episode(robot)
-                return False
-        return robot.frame is not None
+            return
+        try:
+            frame = robot.worker.poll()
+        except WorkerFault as exc:
+            self._fault(robot, str(exc))
+            return
+        if frame is None:
+            return
+        robot.frame = frame
+        self.recorder.frame_arrived(robot, frame)
+        if frame.done and frame.t > 0:
+            self._end_episode(robot, frame)
+        else:
+            robot.fresh = True
 
     def tick(self) -> bool:
-        """One control tick; returns whether any robot was ready (only those ticks are counted)."""
+        """One control tick; returns whether any robot was stepped (only those ticks are counted)."""
         for req in self.queue.expire():  # lease ran out: the robot holds, the request is queued again
             if req.expired_holder and req.claimed_at is not None:
-                busy = self.operator_busy.get(req.expired_holder, 0.0)
-                self.operator_busy[req.expired_holder] = busy + time.monotonic() - req.claimed_at
+                self._add_busy(req.expired_holder, time.monotonic() - req.claimed_at)
             robot = self.robots.get(req.robot_id)
-            if robot is not None and robot.mode == "teleop":
-                robot.mode, robot.command = "waiting", None
-                robot.hold_target = robot.frame["hold"].copy()
-        for r in self.robots.values():  # nothing older than a second is only in memory
-            if r.segment is not None:
-                r.segment.maybe_flush()
-            self._prioritize(r)
-        ready = [r for r in self.robots.values() if self._collect(r) and r.mode != "paused"]
-        if not ready:
-            for r in self.robots.values():  # faults, restarts and pauses still show
-                self._publish(r)
-            return False
-        self.ticks += 1
-        for r in ready:  # the operator's command goes out first: it does not wait for the fleet's batch
-            if r.mode == "teleop" and r.command is not None:
-                self._send_command(r)
-        moving = (r for r in ready if r.mode == "autonomous" or (r.mode == "teleop" and r.applied is not None))
-        for robots in _by_slot(moving).values():
-            self._step_slot(robots)
-        for r in ready:
-            if not r.awaiting and r.mode in ("waiting", "teleop"):  # hold the pose; paused robots are not stepped
-                self._send(r, r.hold_target if r.hold_target is not None else r.frame["hold"])
+            if robot is not None and robot.mode == "teleop" and robot.frame is not None:
+                robot.slot.controller.ask(robot.id, robot.frame.hold)
+                robot.mode = "waiting"
+                robot.commands.clear()
+                self.recorder.close_segment(robot, "closed")
         for r in self.robots.values():
-            self._publish(r)
-        return True
-
-    def _prioritize(self, robot: Robot) -> None:
-        """A teleoperated robot's worker runs at the control loop's priority, the others below it:
-        the operator's robot does not queue behind the fleet's physics. Raising a priority again
-        needs CAP_SYS_NICE; without it every worker stays at ``worker_niceness``."""
-        want = 0 if robot.mode == "teleop" else self.settings.worker_niceness
-        if robot.niceness == want or robot.process is None or robot.process.pid is None:
-            return
-        try:
-            os.setpriority(os.PRIO_PROCESS, robot.process.pid, want)
-        except PermissionError:
-            if not self._priority_denied:
-                log.info("cannot raise worker priority for teleoperated robots (needs CAP_SYS_NICE)")
-            self._priority_denied = True
-            want = self.settings.worker_niceness
-        except ProcessLookupError:  # exited: the next collect faults it
-            return
-        robot.niceness = want
-
-    def _batch(self, robots: list[Robot]) -> tuple[torch.Tensor, torch.Tensor]:
-        obs = torch.stack([torch.stack(list(r.history)) for r in robots])
-        current = torch.as_tensor(np.stack([r.frame["hold"] for r in robots]), dtype=torch.float32)
-        return obs, current
+            if r.segment is not None:  # nothing older than a second is only in memory
+                r.segment.maybe_flush()
+            if r.worker is not None:
+                r.worker.prioritize(Priority.CONTROL if r.mode == "teleop" else Priority.BACKGROUND)
+            self._collect(r)
+        ready = [r for r in self.robots.values() if r.fresh and r.mode not in ("paused", "faulted")]
+        if ready:
+            self.ticks += 1
+            by_slot: dict[int, list[Robot]] = {}
+            for r in ready:
+                by_slot.setdefault(r.slot.version, []).append(r)
+            for robots in by_slot.values():
+                self._step_slot(robots)
+        for r in self.robots.values():
+            r.publish()
+        return bool(ready)
 
     def _step_slot(self, robots: list[Robot]) -> None:
-        """One batched action sample and one batched scoring of every signal for the robots of one
-        policy: the autonomous ones act on it (or ask), the teleoperated ones apply their pending
-        command and are scored in shadow (for the segment, the console and auto-return)."""
         slot = robots[0].slot
-        obs, current = self._batch(robots)
-        ids = np.array([r.id for r in robots])
-        teleop = np.array([r.mode == "teleop" for r in robots])
-        operator = None
-        if teleop.any():
-            operator = torch.full((len(robots), 10), float("nan"))
-            for j in np.flatnonzero(teleop):
-                operator[j] = torch.as_tensor(robots[j].applied[1].action, dtype=torch.float32)
-        with torch.no_grad():
-            chunks = slot.policy.predict_action_chunk(obs)
-            scores = slot.score(SignalInput(obs, current, ids, action=chunks, operator_action=operator))
-        auto = np.flatnonzero(~teleop)
-        active = slot.signals[slot.active]
-        if len(auto):  # the asking signal's trigger rule sees only the robots the policy drives
-            wants = active.wants_help(_take(scores[slot.active], auto), TriggerState.autonomous(ids[auto]))
-            asks = dict(zip(auto.tolist(), wants, strict=True))
-        for j, r in enumerate(robots):
-            if teleop[j]:
-                self._after_command(r, scores, j)
-                continue
-            self._remember(r, scores["denoising"], j)
-            if asks[j] and self.settings.assistance:
-                value, threshold = float(scores[slot.active].value[j]), active.threshold
-                r.mode, r.hold_target = "waiting", r.frame["hold"].copy()
-                r.events += 1
-                self.queue.open(r.id, value, threshold, f"{slot.active} score {value:.3g} over {threshold:.3g}")
-                self._send(r, r.hold_target)
-            else:
-                self._send(r, chunks[j, 0].numpy().astype(np.float64), keys.SOURCE_POLICY)
+        frames = {r.id: r.frame for r in robots}
+        taken = {r.id: t for r in robots if r.mode == "teleop" and (t := r.commands.take()) is not None}
+        commands = {rid: cmd for rid, (cmd, _, _) in taken.items()}
 
-    def _remember(self, robot: Robot, scores, j: int) -> None:
-        res = scores.detail.robot(j)
-        robot.u_history.append(res.U)
-        robot.last_result = res
+        def send(rid: int, action: np.ndarray, source: str) -> None:
+            self._send(self.robots[rid], action, source)
+            if rid in taken and source == keys.SOURCE_OPERATOR:
+                self.robots[rid].latencies.append(time.monotonic() - taken[rid][1])
 
-    def _send_command(self, robot: Robot) -> None:
-        """Sends the robot's pending operator command (the tick's shadow scoring follows)."""
-        (cmd, received), robot.command = robot.command, None  # a command arriving meanwhile waits for the next tick
-        target = robot.action_space.apply_teleop(cmd, robot.frame["pos"], robot.frame["rot"])
-        robot.hold_target = target.action.copy()
-        robot.applied = (cmd, target)
-        self._send(robot, target.action, keys.SOURCE_OPERATOR)
-        robot.latencies.append(time.monotonic() - received)
+        steps = slot.controller.step(frames, commands, send)
+        for r in robots:
+            r.fresh = False
+            self._after_step(r, steps[r.id])
 
-    def _after_command(self, robot: Robot, scores: dict, j: int) -> None:
-        """The command's shadow scores: segment step, console field, budget and auto-return."""
-        slot = robot.slot
-        (cmd, target), robot.applied = robot.applied, None
-        action = target.action
-        self._remember(robot, scores["denoising"], j)
-        u = float(scores["denoising"].value[j])
-        if robot.segment is not None:
-            label = slot.policy.normalize_action(torch.as_tensor(action, dtype=torch.float32)).numpy()
-            robot.segment.write_step(
-                robot.frame["obs"],
-                {
-                    "delta_pos": list(cmd.delta_pos),
-                    "delta_rot": list(cmd.delta_rot),
-                    "gripper": cmd.gripper,
-                    "clamped": list(target.clamped),
-                },
-                action,
-                label,
-                robot.frame["pos"],
-                robot.frame["quat"],
-                u,
-                shadow={name: float(sc.value[j]) for name, sc in scores.items() if name != "denoising"},
-                field=_world_field(slot, robot.last_result),  # the field just remembered
-            )
-        robot.assisted_steps += 1
-        robot.below = robot.below + 1 if u <= slot.threshold else 0
-        if robot.teleop_left is not None:
-            robot.teleop_left -= 1
-        auto_k = self.settings.auto_return_steps
-        if (robot.teleop_left is not None and robot.teleop_left <= 0) or (auto_k and robot.below >= auto_k):
+    def _after_step(self, robot: Robot, step: RobotStep) -> None:
+        if step.uncertainty is not None:
+            robot.u_history.append(step.uncertainty.U)
+            robot.last_result = step.uncertainty
+        if step.source == keys.SOURCE_OPERATOR:
+            robot.assisted_steps += 1
+            self.recorder.segment_step(robot, robot.frame, step)
+        robot.mode = step.mode.value
+        if step.asked:
+            robot.events += 1
+            asking = robot.slot.controller.asking
+            value, threshold = step.scores[asking], robot.slot.controller.signals[asking].threshold
+            self.queue.open(robot.id, value, threshold, f"{asking} score {value:.3g} over {threshold:.3g}")
+        if step.returned:
             self._hand_back(robot)
 
-    def _send(self, robot: Robot, action: np.ndarray, source: str = keys.SOURCE_HOLD) -> None:
-        if robot.recorder is not None and robot.frame is not None:
-            f = robot.frame
-            robot.pending_step = (
-                f["t"],
-                f["obs"],
-                np.asarray(action, np.float64),
-                f["pos"],
-                f["quat"],
-                f["gripper"],
-                source,
-                f["bodies"],
-            )
+    def _send(self, robot: Robot, action: np.ndarray, source: str) -> None:
+        self.recorder.action_sent(robot, action, source)
         try:
-            robot.conn.send(("step", np.asarray(action, dtype=np.float64)))
-            robot.awaiting = True
-            robot.steps += 1
-            self.env_steps += 1
-            now = time.monotonic()
-            if robot.last_sent is not None:
-                robot.action_periods.append(now - robot.last_sent)
-            robot.last_sent = now
-        except (OSError, BrokenPipeError) as exc:
-            self._fault(robot, f"worker pipe broke: {exc}")
-
-    def _record(self, robot: Robot, frame: dict) -> None:
-        """Whole-episode MCAP recording: the step sent last, with the success that followed it."""
-        if not self.settings.record_episodes:
+            robot.worker.request_step(action)
+        except WorkerFault as exc:
+            self._fault(robot, str(exc))
             return
-        if robot.pending_step is not None and robot.recorder is not None:
-            t, obs, action, pos, quat, gripper, source, bodies = robot.pending_step
-            robot.recorder.write_step(t, obs, action, pos, quat, gripper, frame["success"], source, bodies)
-        robot.pending_step = None
-        if frame["t"] == 0 and not frame["done"] and robot.recorder is None:
-            path = Path(self.settings.data_dir) / "episodes" / f"robot{robot.id:03d}_ep{robot.episode_id:06d}.mcap"
-            meta = {"task": robot.task, "seed": robot.seed, "robot": robot.id, "policy": str(robot.slot.path)}
-            robot.recorder = EpisodeWriter(path, meta, object_names=list(frame["bodies"]))
-            with self.sessions() as s:
-                row = s.get(EpisodeRecord, robot.episode_id)
-                if row is not None:
-                    row.path = str(path)
-                    s.commit()
+        robot.steps += 1
+        self.env_steps += 1
+        now = time.monotonic()
+        if robot.last_sent is not None:
+            robot.action_periods.append(now - robot.last_sent)
+        robot.last_sent = now
 
-    def _close_recorder(self, robot: Robot, success: bool | None, steps: int, reason: str) -> None:
-        rec, robot.recorder, robot.pending_step = robot.recorder, None, None
-        if rec is None:
-            return
-        if success is None:
-            rec.close()  # unfinished: readable with recover=True
-        else:
-            rec.finish(success, steps, reason)
-
-    def _finish_episode_row(self, robot: Robot, outcome: str) -> None:
-        """Ends the episode's row early (faulted, reset) so that no episode stays open forever."""
-        with self.sessions() as s:
-            row = s.get(EpisodeRecord, robot.episode_id) if robot.episode_id is not None else None
-            if row is not None and row.outcome is None:
-                row.outcome, row.steps, row.ended_at = outcome, robot.steps, datetime.now(UTC)
-                row.assisted_steps, row.assistance_events = robot.assisted_steps, robot.events
-                s.commit()
-
-    def _end_episode(self, robot: Robot) -> None:
-        frame = robot.frame
-        outcome = "success" if frame["success"] else "timeout"
-        self._close_recorder(robot, bool(frame["success"]), int(frame["t"]), outcome)
-        self._close_segment(robot, "closed")
-        self.queue.close(robot.id)
-        robot.mode = "done" if robot.mode != "paused" else "paused"
-        robot.episodes_done += 1
-        robot.successes += int(frame["success"])
-        with self.sessions() as s:
-            row = s.get(EpisodeRecord, robot.episode_id)
-            if row is not None:
-                row.outcome, row.steps = outcome, int(frame["t"])
-                row.assisted_steps, row.assistance_events = robot.assisted_steps, robot.events
-                row.ended_at = datetime.now(UTC)
-                s.commit()
-        robot.frame = None
-        self._new_episode(robot)
-
-    # -- takeovers -----------------------------------------------------------------------------------------
-    def _open_segment(self, robot: Robot, operator: str, reason: str) -> None:
-        folder = Path(self.settings.data_dir) / "segments"
-        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%f")
-        path = folder / f"robot{robot.id:03d}_ep{robot.episode_id}_{stamp}.mcap"
-        meta = {
-            "robot": robot.id,
-            "episode": robot.episode_id,
-            "policy_version": robot.slot.id,
-            "policy": str(robot.slot.path),
-            "operator": operator,
-            "task": robot.task,
-            "reason": reason,
-            "seed": robot.seed,
-        }
-        robot.segment = SegmentWriter(path, meta)
-        with self.sessions() as s:
-            row = SegmentRecord(
-                robot_id=robot.id,
-                episode_id=robot.episode_id,
-                task=robot.task,
-                policy_id=robot.slot.id,
-                operator=operator,
-                reason=reason,
-                status="open",
-                path=str(path),
-                meta=meta,
-            )
-            s.add(row)
-            s.commit()
-            robot.segment_id = row.id
-
-    def _close_segment(self, robot: Robot, status: str) -> None:
-        if robot.segment is None:
-            return
-        writer, robot.segment = robot.segment, None
-        writer.close(status)
-        with self.sessions() as s:
-            row = s.get(SegmentRecord, robot.segment_id)
-            if row is not None:
-                row.status, row.steps, row.ended_at = status, writer.steps, datetime.now(UTC)
-                s.commit()
-        robot.segment_id = None
+    def _add_busy(self, operator: str, seconds: float) -> None:
+        self.operator_busy[operator] = self.operator_busy.get(operator, 0.0) + seconds
 
     def _hand_back(self, robot: Robot) -> None:
-        """The policy restarts from the current pose with a fresh observation history."""
-        self._close_segment(robot, "closed")
+        """Control returns to the policy, which restarts from the next frame with a fresh history."""
+        self.recorder.close_segment(robot, "closed")
         req = self.queue.close(robot.id)
         if req is not None and req.holder and req.claimed_at is not None:
-            self.operator_busy[req.holder] = self.operator_busy.get(req.holder, 0.0) + time.monotonic() - req.claimed_at
-        robot.mode, robot.teleop_left, robot.command, robot.below = "autonomous", None, None, 0
-        robot.hold_target = None
-        robot.history.clear()
-        if robot.frame is not None:
-            obs = torch.as_tensor(robot.frame["obs"])
-            robot.history.extend([obs] * robot.slot.policy.config.obs_horizon)
+            self._add_busy(req.holder, time.monotonic() - req.claimed_at)
+        if robot.id in robot.slot.controller:
+            robot.slot.controller.release(robot.id)
+        robot.commands.clear()
+        if robot.mode == "paused":
+            robot.paused_from = "autonomous"
+        else:
+            robot.mode = "autonomous"
 
     # -- what readers see -------------------------------------------------------------------------------------
-    def _publish(self, robot: Robot) -> None:
-        """A consistent copy of what the API shows, so readers never wait for a tick in progress."""
-        values = {f.name: getattr(robot, f.name) for f in fields(RobotView)}
-        robot.view = RobotView(**values | {"u_history": tuple(robot.u_history)})
-
     def view(self, robot_id: int) -> RobotView:
         robot = self.robot(robot_id)
         if robot.view is None:
             with self.lock:
-                self._publish(robot)
+                robot.publish()
         return robot.view
 
     def views(self) -> list[RobotView]:
@@ -631,8 +340,20 @@ class Fleet:
     def robot(self, robot_id: int) -> Robot:
         robot = self.robots.get(robot_id)
         if robot is None:
-            raise FleetError(404, f"no robot {robot_id}")
+            raise ServiceError(404, f"no robot {robot_id}")
         return robot
+
+    def request_help(self, robot_id: int, reason: str) -> None:
+        """Puts an autonomous robot in ``waiting`` as if its signal had asked (benchmarks, drills)."""
+        with self.lock:
+            robot = self.robot(robot_id)
+            if robot.mode != "autonomous" or robot.frame is None:
+                raise ServiceError(409, f"robot {robot_id} is {robot.mode}, not autonomous with a frame")
+            robot.slot.controller.ask(robot.id, robot.frame.hold)
+            robot.mode = "waiting"
+            robot.events += 1
+            self.queue.open(robot.id, 1.0, 1.0, reason)
+            robot.publish()
 
     def claim(self, robot_id: int, operator: str):
         with self.lock:
@@ -640,12 +361,12 @@ class Fleet:
             req = self.queue.claim(robot_id, operator)
             self.operator_since.setdefault(operator, time.monotonic())
             if robot.mode == "waiting":
+                robot.slot.controller.take_over(robot.id)
                 robot.mode = "teleop"
-                robot.teleop_left = self.settings.budget_steps if self.settings.trigger_mode == "budgeted" else None
-                robot.command = None
+                robot.commands.clear()
                 if robot.segment is None:
-                    self._open_segment(robot, operator, req.reason)
-            self._publish(robot)
+                    self.recorder.open_segment(robot, operator, req.reason)
+            robot.publish()
             return req
 
     def heartbeat(self, robot_id: int, operator: str):
@@ -658,103 +379,148 @@ class Fleet:
             robot = self.robot(robot_id)
             self.queue.check_holder(robot_id, operator)
             self._hand_back(robot)
-            self._publish(robot)
+            robot.publish()
 
-    def command(self, robot_id: int, operator: str, command: TeleopCommand) -> None:
-        """Stores the command for the next tick. It does not wait for a tick in progress (no fleet lock):
-        the command slot is one attribute, swapped atomically by the tick."""
+    def command(self, robot_id: int, operator: str, command: TeleopCommand) -> int:
+        """Accepts a command for the next tick without waiting for a tick in progress (no fleet lock).
+        Commands arriving between ticks compose (``server.commands``): returns how many the next tick
+        applies; 429 when the composition would exceed the per-step limits."""
         robot = self.robot(robot_id)
-        self.queue.check_holder(robot_id, operator)
         if robot.mode != "teleop":
-            raise QueueError(409, f"robot {robot_id} is {robot.mode}, not under teleop")
-        robot.command = (command, time.monotonic())
+            raise ServiceError(409, f"robot {robot_id} is {robot.mode}, not under teleop")
+        self.queue.check_holder(robot_id, operator)
+        return robot.commands.put(command)
 
     def pause(self, robot_id: int) -> None:
         with self.lock:
             robot = self.robot(robot_id)
-            if robot.mode in ("faulted",):
-                raise FleetError(409, f"robot {robot_id} is faulted")
+            if robot.mode == "faulted":
+                raise ServiceError(409, f"robot {robot_id} is faulted")
             if robot.mode != "paused":
                 robot.paused_from, robot.mode = robot.mode, "paused"
-                if robot.frame is not None:
-                    robot.hold_target = robot.frame["hold"].copy()
-            self._publish(robot)
+            robot.publish()
 
     def resume(self, robot_id: int) -> None:
         with self.lock:
             robot = self.robot(robot_id)
             if robot.mode != "paused":
-                raise FleetError(409, f"robot {robot_id} is {robot.mode}, not paused")
+                raise ServiceError(409, f"robot {robot_id} is {robot.mode}, not paused")
             back = robot.paused_from if robot.paused_from in ("waiting", "teleop") else "autonomous"
             req = self.queue.get(robot_id)
             if back == "teleop" and (req is None or req.holder is None):  # the lease ran out while paused
                 back = "waiting" if req is not None else "autonomous"
+            controller = robot.slot.controller
+            if robot.id in controller:
+                if back == "waiting" and robot.frame is not None:
+                    controller.ask(robot.id, robot.frame.hold)
+                elif back == "autonomous" and controller.mode(robot.id) != Mode.AUTONOMOUS:
+                    controller.release(robot.id)
             robot.mode, robot.paused_from = back, None
-            if back == "autonomous":
-                robot.hold_target = None
-            self._publish(robot)
+            robot.publish()
 
     def reset(self, robot_id: int) -> None:
         with self.lock:
             robot = self.robot(robot_id)
             if robot.mode == "faulted":
-                raise FleetError(409, f"robot {robot_id} is faulted; it restarts by itself")
-            self._close_segment(robot, "closed")
-            self._close_recorder(robot, None, robot.steps, "reset")
-            self._finish_episode_row(robot, "reset")
-            self.queue.close(robot.id)
-            if robot.awaiting:  # the answer to the step in flight is dropped
-                with contextlib.suppress(EOFError, OSError):
-                    robot.conn.recv()
-            robot.frame, robot.mode = None, "autonomous"
+                raise ServiceError(409, f"robot {robot_id} is faulted; it restarts by itself")
+            self._interrupt(robot, "reset", "reset")
+            if robot.worker.busy:  # the answer to the step in flight is dropped
+                deadline = time.monotonic() + 10
+                try:
+                    while robot.worker.poll() is None and time.monotonic() < deadline:
+                        time.sleep(0.001)
+                except WorkerFault as exc:
+                    self._fault(robot, str(exc))
+                    robot.publish()
+                    return
+            robot.mode = "autonomous"
             self._new_episode(robot)
-            self._publish(robot)
+            robot.publish()
 
-    def metrics(self) -> dict:
-        with self.lock:
-            robots = list(self.robots.values())
-            waits = np.array(self.queue.waits) if self.queue.waits else np.zeros(0)
+    # -- policy versions ----------------------------------------------------------------------------------
+    def register_policy(self, path: Path, task: str | None = None, parent: int | None = None) -> int:
+        """Adds a policy folder as a ``candidate`` version (idempotent by path); returns its id."""
+        key = str(Path(path).resolve())
+        info = _policy_info(Path(key))
+        task = task or info.get("task")
+        if task is None:
+            raise ServiceError(422, f"{key}/config.json names no task: give one")
+        obs_dim = info.get("policy", {}).get("obs_dim")
+        spec = _task_spec(task)
+        if obs_dim != spec.obs_spec.dim:
+            raise ServiceError(
+                422, f"policy {key} expects {obs_dim}-dim observations, {task} gives {spec.obs_spec.dim}"
+            )
+        with self.sessions() as s:
+            if parent is not None and s.get(PolicyVersion, parent) is None:
+                raise ServiceError(404, f"no policy version {parent}")
+            row = s.scalars(select(PolicyVersion).where(PolicyVersion.path == key)).one_or_none()
+            if row is None:
+                row = PolicyVersion(name=Path(key).name, path=key, task=task, status="candidate", parent_id=parent)
+                s.add(row)
+                s.commit()
+            return row.id
+
+    def activate_policy(self, version: int) -> None:
+        """Serves policy ``version`` to the robots of its task: each moves at its next episode boundary.
+        The version is loaded outside the fleet lock; the previously active version of the task is
+        retired."""
+        with self._swap_lock:
             with self.sessions() as s:
-                rows = s.query(EpisodeRecord).filter(EpisodeRecord.outcome.in_(("success", "timeout"))).all()
-            n = len(rows)
-            success = sum(r.outcome == "success" for r in rows)
-            assisted = sum(r.assisted_steps for r in rows)
-            return {
-                "episodes": n,
-                "success_rate": success / n if n else None,
-                "assisted_steps_per_episode": assisted / n if n else None,
-                "assistance_events_per_episode": sum(r.assistance_events for r in rows) / n if n else None,
-                "queue_wait_p50_s": float(np.quantile(waits, 0.5)) if len(waits) else None,
-                "queue_wait_p95_s": float(np.quantile(waits, 0.95)) if len(waits) else None,
-                "operator_busy_s": dict(self.operator_busy),
-                "operator_idle_s": {
-                    op: max(0.0, time.monotonic() - since - self.operator_busy.get(op, 0.0))
-                    for op, since in self.operator_since.items()
-                },
-                "return_on_human_effort": success / assisted if assisted else None,
-                "robots_by_mode": {m: sum(r.mode == m for r in robots) for m in MODES},
-                "ticks": self.ticks,
-            }
+                row = s.get(PolicyVersion, version)
+                if row is None:
+                    raise ServiceError(404, f"no policy version {version}")
+                path, task = Path(row.path), row.task
+            if not any(r.task == task for r in self.robots.values()):
+                raise ServiceError(409, f"no robot of the fleet runs task {task!r}")
+            slot = self.slots.get(version) or load_slot(self.settings, path, task, version)  # slow: no fleet lock
+            with self.lock:
+                self.slots[version] = slot
+                self.assigned[task] = slot
+            with self.sessions() as s:
+                for other in s.scalars(
+                    select(PolicyVersion).where(PolicyVersion.task == task, PolicyVersion.status == "active")
+                ):
+                    if other.id != version:
+                        other.status = "retired"
+                row = s.get(PolicyVersion, version)
+                row.status, row.threshold = "active", slot.threshold
+                s.commit()
+        log.info("policy version %d (%s) now serves %s from each robot's next episode", version, path, task)
+
+    # -- metrics --------------------------------------------------------------------------------------
+    def metrics(self) -> dict:
+        """Fleet metrics; the episode totals come from one aggregate query, outside the fleet lock."""
+        totals = self.recorder.totals()
+        n, success, assisted = totals["episodes"], totals["successes"], totals["assisted_steps"]
+        waits = np.array(list(self.queue.waits))
+        busy, since = dict(self.operator_busy), dict(self.operator_since)
+        views = self.views()
+        now = time.monotonic()
+        return {
+            "episodes": n,
+            "success_rate": success / n if n else None,
+            "assisted_steps_per_episode": assisted / n if n else None,
+            "assistance_events_per_episode": totals["events"] / n if n else None,
+            "queue_wait_p50_s": float(np.quantile(waits, 0.5)) if len(waits) else None,
+            "queue_wait_p95_s": float(np.quantile(waits, 0.95)) if len(waits) else None,
+            "operator_busy_s": busy,
+            "operator_idle_s": {op: max(0.0, now - t0 - busy.get(op, 0.0)) for op, t0 in since.items()},
+            "return_on_human_effort": success / assisted if assisted else None,
+            "robots_by_mode": {m: sum(v.mode == m for v in views) for m in MODES},
+            "ticks": self.ticks,
+        }
 
 
-def _take(scores: Scores, rows: np.ndarray) -> Scores:
-    """The scores of some rows of a batch (values and parts; the detail stays with the batch)."""
-    return Scores(np.asarray(scores.value)[rows], {k: np.asarray(v)[rows] for k, v in scores.parts.items()})
+def _policy_info(path: Path) -> dict:
+    try:
+        return read_info(path)
+    except CheckpointError as exc:
+        raise ServiceError(422, str(exc)) from exc
 
 
-def _by_slot(robots) -> dict[int, list[Robot]]:
-    out: dict[int, list[Robot]] = {}
-    for r in robots:
-        out.setdefault(r.slot.id, []).append(r)
-    return out
-
-
-def _world_field(slot: PolicySlot, result: UncertaintyResult) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """The probe samples in metres (world frame) and the denoising directions (-ε, rescaled per axis
-    from the normalized action space), for the segment's arrows; the longest arrow is 2 cm."""
-    norm = slot.policy.action_normalizer
-    low, span = norm.low[:3].numpy().astype(np.float64), norm.span[:3].numpy().astype(np.float64)
-    samples = result.samples * span + low
-    vectors = -result.vectors * span
-    longest = float(np.linalg.norm(vectors, axis=1).max()) if len(vectors) else 0.0
-    return samples, vectors, result.labels, 0.02 / longest if longest > 0 else 0.0
+def _task_spec(task: str):
+    try:
+        return make_task(task)
+    except KeyError as exc:
+        raise ServiceError(422, str(exc)) from exc

@@ -65,6 +65,9 @@ class Settings(BaseSettings):
     seed: int = 0
     torch_threads: int = Field(1, ge=1, le=256, description="server-side torch threads; workers take the other cores")
     trace_policies: bool = Field(True, description="serve each policy's noise network as a frozen TorchScript trace")
+    worker: Literal["process", "in-process"] = Field(
+        "process", description="robot back end: a process per robot, or tasks stepped in the control thread"
+    )
     worker_niceness: int = Field(
         10, ge=0, le=19, description="CPU priority of the physics workers below the control loop (os.nice)"
     )

@@ -145,6 +145,7 @@ class Task(ABC):
         self._env = None
         self._t = 0
         self._seed: int | None = None
+        self._gripper = -1.0  # the gripper command in force (our convention: -1 open, +1 closed)
 
     # -- subclass hooks ---------------------------------------------------
     @abstractmethod
@@ -211,6 +212,7 @@ class Task(ABC):
         self.sim.forward()
         self._settle()
         self._t = 0
+        self._gripper = -1.0
         return self.observe()
 
     def step(self, action: np.ndarray) -> StepResult:
@@ -218,6 +220,7 @@ class Task(ABC):
         action = self.action_space.validate(action)
         env_action = np.concatenate([action[0:3], rot6d_to_rotvec(action[3:9]), action[9:10]])
         self.env.step(env_action)
+        self._gripper = float(action[9])
         self._t += 1
         self.on_step()
         success = self.check_success()
@@ -261,10 +264,11 @@ class Task(ABC):
         return float(q[0] - q[1])
 
     def gripper_command(self) -> float:
-        """The last gripper command the controller holds (-1 open, +1 closed)."""
-        robot = self.env.robots[0]
-        cur = robot.gripper["right"].current_action
-        return float(cur[0]) if cur is not None and len(cur) else -1.0
+        """The gripper command in force: the last action's gripper value (-1 open .. +1 closed), open
+        (-1) before the episode's first step. Calibration's probe centres hold the recorded command the
+        same way (``policy.calibrate.current_actions``). robosuite's own ``current_action`` is not used:
+        it is the gripper's rate-limited internal state, with the opposite sign (+1 open, -1 closed)."""
+        return self._gripper
 
     def robot_obs(self) -> np.ndarray:
         """eef_pos (3), eef_rot6d (6), gripper_qpos (2)."""

@@ -23,10 +23,9 @@ from pathlib import Path
 
 import numpy as np
 from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader, make_reader
-from mcap.writer import CompressionType, Writer
 
 from storage import keys
+from storage.mcap_io import JsonMcapWriter, read_all, salvage, stamp
 
 _VEC = {"type": "array", "items": {"type": "number"}}
 _VEC3 = {
@@ -56,13 +55,13 @@ SCHEMAS: dict[str, dict] = {
     keys.SCHEMA_STEP: {
         "type": "object",
         "properties": {
-            "t": {"type": "integer"},
-            "observation": _VEC,
-            "action": _VEC,
-            "ee_pose": {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT}},
-            "gripper": {"type": "number", "description": "finger gap (m)"},
-            "success": {"type": "boolean"},
-            "source": {"type": "string", "enum": list(keys.SOURCES)},
+            keys.STEP_T: {"type": "integer"},
+            keys.STEP_OBSERVATION: _VEC,
+            keys.STEP_ACTION: _VEC,
+            keys.STEP_EE_POSE: {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT}},
+            keys.STEP_GRIPPER: {"type": "number", "description": "finger gap (m)"},
+            keys.STEP_SUCCESS: {"type": "boolean"},
+            keys.STEP_SOURCE: {"type": "string", "enum": list(keys.SOURCES)},
         },
     },
     keys.SCHEMA_OUTCOME: {
@@ -136,10 +135,6 @@ def _quat(q) -> dict:
     return {"x": float(q[0]), "y": float(q[1]), "z": float(q[2]), "w": float(q[3])}
 
 
-def _stamp(ns: int) -> dict:
-    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
-
-
 class EpisodeWriter:
     """Writes one episode to ``path``; use as a context manager.
 
@@ -161,23 +156,11 @@ class EpisodeWriter:
         if flush_every < 1:
             raise ValueError(f"flush_every must be >= 1, got {flush_every}")
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD, chunk_size=256 * 1024)
-        self._writer.start(profile=keys.MCAP_PROFILE, library="hitl")
+        self._mcap = JsonMcapWriter(self.path, SCHEMAS, chunk_size=256 * 1024)
         self._flush_every = flush_every
         self._t0 = time.time_ns() if start_time_ns is None else int(start_time_ns)
         self._steps = 0
-        self._seq = 0
-        self._closed = False
-        schema_ids = {
-            name: self._writer.register_schema(name, "jsonschema", json.dumps(schema).encode())
-            for name, schema in SCHEMAS.items()
-        }
-
-        def channel(topic: str, schema: str) -> int:
-            return self._writer.register_channel(topic, "json", schema_ids[schema])
-
+        channel = self._mcap.channel
         self._ch_episode = channel(keys.TOPIC_EPISODE, keys.SCHEMA_EPISODE)
         self._ch_step = channel(keys.TOPIC_STEP, keys.SCHEMA_STEP)
         self._ch_outcome = channel(keys.TOPIC_OUTCOME, keys.SCHEMA_OUTCOME)
@@ -187,15 +170,12 @@ class EpisodeWriter:
             name: channel(keys.TOPIC_OBJECT_POSE.format(name=name), keys.SCHEMA_POSE_IN_FRAME) for name in object_names
         }
         self.meta = dict(meta)
-        self._writer.add_metadata("episode", {k: json.dumps(v) for k, v in self.meta.items()})
+        self._mcap.add_metadata("episode", self.meta)
         self._add(self._ch_episode, self._t0, self.meta)
-        self._writer.flush()
+        self._mcap.flush()
 
     def _add(self, channel: int, ns: int, payload: dict) -> None:
-        self._writer.add_message(
-            channel, log_time=ns, publish_time=ns, sequence=self._seq, data=json.dumps(payload).encode()
-        )
-        self._seq += 1
+        self._mcap.add(channel, ns, payload)
 
     def write_step(
         self,
@@ -222,17 +202,17 @@ class EpisodeWriter:
             self._ch_step,
             ns,
             {
-                "t": int(t),
-                "observation": obs.tolist(),
-                "action": action.tolist(),
-                "ee_pose": pose,
-                "gripper": float(gripper),
-                "success": bool(success),
-                "source": source,
+                keys.STEP_T: int(t),
+                keys.STEP_OBSERVATION: obs.tolist(),
+                keys.STEP_ACTION: action.tolist(),
+                keys.STEP_EE_POSE: pose,
+                keys.STEP_GRIPPER: float(gripper),
+                keys.STEP_SUCCESS: bool(success),
+                keys.STEP_SOURCE: source,
             },
         )
         self._add_frame(ns, keys.EE_FRAME, ee_pos, ee_quat)
-        self._add(self._ch_ee, ns, {"timestamp": _stamp(ns), "frame_id": keys.WORLD_FRAME, "pose": pose})
+        self._add(self._ch_ee, ns, {"timestamp": stamp(ns), "frame_id": keys.WORLD_FRAME, "pose": pose})
         for name, (pos, quat) in (objects or {}).items():
             if name not in self._ch_objects:
                 raise KeyError(f"object {name!r} was not declared when the episode was opened")
@@ -241,7 +221,7 @@ class EpisodeWriter:
                 self._ch_objects[name],
                 ns,
                 {
-                    "timestamp": _stamp(ns),
+                    "timestamp": stamp(ns),
                     "frame_id": keys.WORLD_FRAME,
                     "pose": {"position": _xyz(pos), "orientation": _quat(quat)},
                 },
@@ -255,7 +235,7 @@ class EpisodeWriter:
             self._ch_tf,
             ns,
             {
-                "timestamp": _stamp(ns),
+                "timestamp": stamp(ns),
                 "parent_frame_id": keys.WORLD_FRAME,
                 "child_frame_id": child,
                 "translation": _xyz(pos),
@@ -265,7 +245,7 @@ class EpisodeWriter:
 
     def flush(self) -> None:
         """Closes the current chunk and flushes it to disk."""
-        self._writer.flush()
+        self._mcap.flush()
 
     def finish(self, success: bool, steps: int, reason: str = "") -> None:
         ns = self._t0 + int(steps) * CONTROL_PERIOD_NS
@@ -274,13 +254,7 @@ class EpisodeWriter:
 
     def close(self) -> None:
         """Writes the summary and footer. An episode closed without ``finish`` has no outcome."""
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            self._writer.finish()
-        finally:
-            self._file.close()
+        self._mcap.close()
 
     def __enter__(self) -> EpisodeWriter:
         return self
@@ -310,15 +284,13 @@ def _decode(path: Path, messages) -> Episode:
             playback += 1
     if meta is None:
         raise EpisodeReadError(path, f"no {keys.TOPIC_EPISODE} message: not a hitl episode, or cut off before it")
-    steps.sort(key=lambda s: s["t"])
+    steps.sort(key=lambda s: s[keys.STEP_T])
     try:
-        obs = np.array([s["observation"] for s in steps], dtype=np.float64)
-        actions = np.array([s["action"] for s in steps], dtype=np.float64)
+        obs = np.array([s[keys.STEP_OBSERVATION] for s in steps], dtype=np.float64)
+        actions = np.array([s[keys.STEP_ACTION] for s in steps], dtype=np.float64)
+        pose = keys.STEP_EE_POSE
         ee = np.array(
-            [
-                [*(s["ee_pose"]["position"][k] for k in "xyz"), *(s["ee_pose"]["orientation"][k] for k in "xyzw")]
-                for s in steps
-            ],
+            [[*(s[pose]["position"][k] for k in "xyz"), *(s[pose]["orientation"][k] for k in "xyzw")] for s in steps],
             dtype=np.float64,
         )
         n = len(steps)
@@ -333,9 +305,9 @@ def _decode(path: Path, messages) -> Episode:
         obs=obs,
         actions=actions,
         ee_pose=ee,
-        gripper=np.array([s["gripper"] for s in steps], dtype=np.float64),
-        success=np.array([s["success"] for s in steps], dtype=bool),
-        sources=[s["source"] for s in steps],
+        gripper=np.array([s[keys.STEP_GRIPPER] for s in steps], dtype=np.float64),
+        success=np.array([s[keys.STEP_SUCCESS] for s in steps], dtype=bool),
+        sources=[s[keys.STEP_SOURCE] for s in steps],
         outcome=outcome,
         playback_messages=playback,
     )
@@ -346,19 +318,6 @@ _TRUNCATED_HINT = (
     "read_episode(path, recover=True) (or `hitl inspect --recover FILE`) salvages every message up to "
     "the last flushed chunk with the non-seeking MCAP reader"
 )
-
-
-def _recover_messages(path: Path) -> tuple[list, str | None]:
-    """Reads records in file order until the data ends or breaks; returns (messages, why it stopped)."""
-    out: list = []
-    with open(path, "rb") as f:
-        reader = NonSeekingReader(f, validate_crcs=True)
-        try:
-            for item in reader.iter_messages(log_time_order=False):
-                out.append(item)
-        except Exception as exc:  # noqa: BLE001 - any decode failure marks the truncation point
-            return out, f"{type(exc).__name__}: {exc}"
-    return out, None
 
 
 def read_episode(path: str | Path, recover: bool = False) -> Episode:
@@ -373,15 +332,12 @@ def read_episode(path: str | Path, recover: bool = False) -> Episode:
     if not path.is_file():
         raise EpisodeReadError(path, "no such file")
     try:
-        with open(path, "rb") as f:
-            reader = make_reader(f, validate_crcs=True)
-            messages = list(reader.iter_messages(log_time_order=False))
-        return _decode(path, messages)
+        return _decode(path, read_all(path))
     except EpisodeReadError:
         raise
     except Exception as exc:  # noqa: BLE001 - mcap raises several types for broken files
         seek_error = f"{type(exc).__name__}: {exc}"
-    messages, stopped = _recover_messages(path)
+    messages, stopped = salvage(path)
     if not messages:
         raise EpisodeReadError(path, f"not a readable MCAP episode ({seek_error}; {stopped})")
     if not recover:

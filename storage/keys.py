@@ -9,10 +9,15 @@ from __future__ import annotations
 # -- batch / array keys -------------------------------------------------------
 OBS = "obs"  # (..., obs_horizon, obs_dim)
 ACTION = "action"  # (..., action_horizon, 10) absolute end-effector pose + gripper
-EE_POSE = "ee_pose"  # (..., 7) position + quaternion xyzw
-GRIPPER = "gripper"  # (...,) finger gap in metres
-SUCCESS = "success"  # (...,) task success after the step
-SOURCE = "source"  # who produced the action: see SOURCES
+
+# -- step messages: the fields one control step has in every MCAP file (/step, /takeover/step) --
+STEP_T = "t"  # step index within the episode / takeover
+STEP_OBSERVATION = "observation"  # (obs_dim,) the observation before the action
+STEP_ACTION = "action"  # (10,) the absolute action sent
+STEP_EE_POSE = "ee_pose"  # {position: {x, y, z}, orientation: {x, y, z, w}} before the action
+STEP_GRIPPER = "gripper"  # finger gap in metres
+STEP_SUCCESS = "success"  # task success after the step
+STEP_SOURCE = "source"  # who produced the action: see SOURCES
 
 SOURCE_EXPERT = "expert"  # scripted demonstrator
 SOURCE_POLICY = "policy"  # autonomous diffusion policy

@@ -1,6 +1,7 @@
 """Takeover segments: one MCAP file per operator takeover, the fine-tuning data of the product.
 
-Per step (``/takeover/step``): the observation, the operator's command, the resulting absolute
+Per step (``/takeover/step``, with the step field names of ``storage.keys`` that episodes use
+too): the observation, the operator's command, the resulting absolute
 action and the same action in the policy's normalized action space (the fine-tune label), U and
 any shadow signal scores, and the end-effector pose. ``/tf`` carries the end effector and
 ``/denoising/field`` the denoising vector field as a ``foxglove.SceneUpdate`` of arrows coloured
@@ -16,10 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.reader import NonSeekingReader, make_reader
-from mcap.writer import CompressionType, Writer
 
 from storage import keys
+from storage.mcap_io import JsonMcapWriter, read_all, salvage, stamp
 
 _COLOURS = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16), (0.58, 0.4, 0.74)]
 _OBJ = {"type": "object"}
@@ -40,10 +40,6 @@ class SegmentReadError(Exception):
 
 def _vec(v) -> list[float]:
     return [float(x) for x in np.asarray(v, dtype=np.float64).ravel()]
-
-
-def _time(ns: int) -> dict:
-    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
 
 
 def field_scene_update(ns: int, samples: np.ndarray, vectors: np.ndarray, labels: np.ndarray, scale: float) -> dict:
@@ -76,7 +72,7 @@ def field_scene_update(ns: int, samples: np.ndarray, vectors: np.ndarray, labels
                 "color": {"r": r, "g": g, "b": b, "a": 1.0},
             }
         )
-    entity = {"timestamp": _time(ns), "frame_id": keys.WORLD_FRAME, "id": "denoising_field", "lifetime": _time(0)}
+    entity = {"timestamp": stamp(ns), "frame_id": keys.WORLD_FRAME, "id": "denoising_field", "lifetime": stamp(0)}
     return {"deletions": [], "entities": [entity | {"frame_locked": False, "arrows": arrows}]}
 
 
@@ -85,35 +81,26 @@ class SegmentWriter:
 
     def __init__(self, path: str | Path, meta: dict, flush_seconds: float = 1.0) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD, chunk_size=64 * 1024)
-        self._writer.start(profile=keys.MCAP_PROFILE, library="hitl")
-        ids = {n: self._writer.register_schema(n, "jsonschema", json.dumps(s).encode()) for n, s in SCHEMAS.items()}
-        ch = self._writer.register_channel
+        self._mcap = JsonMcapWriter(self.path, SCHEMAS, chunk_size=64 * 1024)
+        ch = self._mcap.channel
         self._ch = {
-            "meta": ch(keys.TOPIC_TAKEOVER, "json", ids[keys.SCHEMA_TAKEOVER]),
-            "step": ch(keys.TOPIC_TAKEOVER_STEP, "json", ids[keys.SCHEMA_TAKEOVER_STEP]),
-            "end": ch(keys.TOPIC_TAKEOVER_END, "json", ids[keys.SCHEMA_TAKEOVER_END]),
-            "tf": ch(keys.TOPIC_TF, "json", ids[keys.SCHEMA_FRAME_TRANSFORM]),
-            "field": ch(keys.TOPIC_FIELD, "json", ids[keys.SCHEMA_SCENE_UPDATE]),
+            "meta": ch(keys.TOPIC_TAKEOVER, keys.SCHEMA_TAKEOVER),
+            "step": ch(keys.TOPIC_TAKEOVER_STEP, keys.SCHEMA_TAKEOVER_STEP),
+            "end": ch(keys.TOPIC_TAKEOVER_END, keys.SCHEMA_TAKEOVER_END),
+            "tf": ch(keys.TOPIC_TF, keys.SCHEMA_FRAME_TRANSFORM),
+            "field": ch(keys.TOPIC_FIELD, keys.SCHEMA_SCENE_UPDATE),
         }
         self.meta = dict(meta)
         self.steps = 0
-        self._seq = 0
         self._flush_seconds = flush_seconds
         self._last_flush = time.monotonic()
-        self._closed = False
         self._dirty = False
-        self._writer.add_metadata("takeover", {k: json.dumps(v) for k, v in self.meta.items()})
+        self._mcap.add_metadata("takeover", self.meta)
         self._add("meta", time.time_ns(), self.meta)
         self.flush()
 
     def _add(self, channel: str, ns: int, payload: dict) -> None:
-        self._writer.add_message(
-            self._ch[channel], log_time=ns, publish_time=ns, sequence=self._seq, data=json.dumps(payload).encode()
-        )
-        self._seq += 1
+        self._mcap.add(self._ch[channel], ns, payload)
 
     def write_step(
         self,
@@ -133,10 +120,10 @@ class SegmentWriter:
             "step",
             ns,
             {
-                "t": self.steps,
-                keys.OBS: _vec(obs),
+                keys.STEP_T: self.steps,
+                keys.STEP_OBSERVATION: _vec(obs),
                 "command": command,
-                keys.ACTION: _vec(action),
+                keys.STEP_ACTION: _vec(action),
                 "action_normalized": _vec(action_normalized),
                 "uncertainty": None if uncertainty is None else float(uncertainty),
                 "shadow": {k: float(v) for k, v in (shadow or {}).items()},
@@ -148,7 +135,7 @@ class SegmentWriter:
             "tf",
             ns,
             {
-                "timestamp": _time(ns),
+                "timestamp": stamp(ns),
                 "parent_frame_id": keys.WORLD_FRAME,
                 "child_frame_id": keys.EE_FRAME,
                 "translation": dict(zip("xyz", _vec(pos), strict=True)),
@@ -167,20 +154,17 @@ class SegmentWriter:
             self.flush()
 
     def flush(self) -> None:
-        self._writer.flush()
-        self._file.flush()
+        self._mcap.flush()
         self._last_flush = time.monotonic()
         self._dirty = False
 
     def close(self, status: str = "closed") -> None:
-        if self._closed:
+        if self._mcap.closed:
             return
-        self._closed = True
         try:
             self._add("end", time.time_ns(), {"status": status, "steps": self.steps})
-            self._writer.finish()
         finally:
-            self._file.close()
+            self._mcap.close()
 
 
 @dataclass
@@ -195,7 +179,7 @@ class Segment:
     def labels(self) -> tuple[np.ndarray, np.ndarray]:
         """(obs (T, obs_dim), normalized action labels (T, 10)) for fine-tuning."""
         return (
-            np.array([s[keys.OBS] for s in self.steps], dtype=np.float32),
+            np.array([s.get(keys.STEP_OBSERVATION, s.get("obs")) for s in self.steps], dtype=np.float32),
             np.array([s["action_normalized"] for s in self.steps], dtype=np.float32),
         )
 
@@ -223,8 +207,7 @@ def read_segment(path: str | Path, recover: bool = False) -> Segment:
     if not path.is_file():
         raise SegmentReadError(path, "no such file")
     try:
-        with open(path, "rb") as f:
-            return _collect(path, list(make_reader(f, validate_crcs=True).iter_messages(log_time_order=False)), False)
+        return _collect(path, read_all(path), False)
     except SegmentReadError:
         raise
     except Exception as exc:  # noqa: BLE001 - mcap raises several types for broken files
@@ -232,13 +215,7 @@ def read_segment(path: str | Path, recover: bool = False) -> Segment:
             raise SegmentReadError(
                 path, f"truncated or corrupt ({type(exc).__name__}: {exc}); use recover=True"
             ) from exc
-    out = []
-    with open(path, "rb") as f:
-        try:
-            for item in NonSeekingReader(f, validate_crcs=True).iter_messages(log_time_order=False):
-                out.append(item)
-        except Exception:  # noqa: BLE001, S110 - the truncation point
-            pass
+    out, _ = salvage(path)
     if not out:
         raise SegmentReadError(path, "nothing recoverable")
     return _collect(path, out, True)

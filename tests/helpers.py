@@ -82,3 +82,58 @@ class Service:
     def __exit__(self, *exc):
         self.server.should_exit = True
         self.thread.join(timeout=60)
+
+
+class KinematicTask:
+    """A light stand-in for a simulated task (no physics engine): the end effector jumps to each
+    commanded target, the observation is the lift layout's size with the pose in front. Episodes end
+    after ``horizon`` steps, never in success. Fleet unit tests run on it in-process."""
+
+    name = "lift-cube"
+
+    def __init__(self, horizon: int = 1000):
+        spec = make_task("lift-cube")
+        self.action_space, self.obs_spec, self.horizon = spec.action_space, spec.obs_spec, horizon
+        self.t, self.action = 0, None
+        self.closed = False
+
+    def reset(self, seed: int):
+        rng = np.random.default_rng(seed)
+        self.t = 0
+        self.action = self.action_space.make_action(np.array([rng.uniform(-0.05, 0.05), 0.0, 1.0]), np.eye(3), -1.0)
+        return self.observe()
+
+    def step(self, action):
+        from sim.env import StepResult
+
+        self.action = self.action_space.validate(action)
+        self.t += 1
+        return StepResult(self.observe(), False, self.t >= self.horizon, self.t)
+
+    def observe(self):
+        obs = np.zeros(self.obs_spec.dim)
+        obs[:10] = self.action
+        return obs
+
+    def ee_pose(self):
+        from sim.rotations import rot6d_to_mat
+
+        return self.action[:3].copy(), rot6d_to_mat(self.action[3:9])
+
+    def hold_action(self):
+        return self.action.copy()
+
+    def gripper_opening(self):
+        return 0.08 if self.action[9] < 0 else 0.0
+
+    def object_poses(self):
+        return {"cube": (np.array([0.0, 0.0, 0.82]), np.array([0.0, 0.0, 0.0, 1.0]))}
+
+    def privileged(self):
+        return {}
+
+    def episode_info(self):
+        return {}
+
+    def close(self):
+        self.closed = True

@@ -90,8 +90,11 @@ def load_signal(policy: DiffusionPolicy, policy_dir: str | Path, name: str) -> A
     if not path.is_file() and name in ("full-teleop", "random"):
         return make_signal(name, policy)
     calibration = load_calibration(policy_dir) if not path.is_file() and name == "denoising" else None
-    if calibration is not None:
-        signal = make_signal(name, policy)
+    if calibration is not None:  # served with the settings it was calibrated with
+        try:
+            signal = make_signal(name, policy, dict(calibration.get("uncertainty") or {}))
+        except (TypeError, ValueError) as exc:
+            raise SignalError(f"{Path(policy_dir) / CALIBRATION}: bad uncertainty settings: {exc}") from exc
         signal.calibration = {"threshold": float(calibration["threshold"]), "source": CALIBRATION}
         return signal
     if not path.is_file():

@@ -7,7 +7,7 @@ Each scores the whole batch of robots in as few network calls as its method allo
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 import torch
@@ -28,9 +28,9 @@ from policy.signals.base import (
     quantile_record,
 )
 from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
+from sim.spaces import POS
 
-POS = slice(0, 3)
-NO_GRIPPER = slice(0, 9)
+NO_GRIPPER = slice(0, 9)  # every action dimension but the gripper
 
 
 def batched_scores(
@@ -65,33 +65,24 @@ def subsample(steps: StepSet, limit: int, seed: int) -> StepSet:
 
 # -- denoising ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
-class DenoisingConfig(SignalConfig):
-    """The paper's metric (see ``policy.uncertainty``); threshold = ``quantile`` of U on held-out demos."""
+class DenoisingConfig(UncertaintyConfig, SignalConfig):
+    """The paper's metric: its settings are ``UncertaintyConfig``'s (one definition); threshold =
+    ``quantile`` of U on held-out demos."""
 
-    num_samples: int = 128
-    radius: float = 0.05
-    max_modes: int = 4
-    criterion: str = "bic"
-    alpha: float = 0.1
-    backend: str = "torch"
     quantile: float = 0.95
     calibration_batch: int = 64
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # validates the metric's settings
         check_quantile("quantile", self.quantile)
         check_positive_int("calibration_batch", self.calibration_batch)
-        self.uncertainty()  # validates the metric's settings
 
     def uncertainty(self) -> UncertaintyConfig:
-        return UncertaintyConfig(
-            num_samples=self.num_samples,
-            radius=self.radius,
-            max_modes=self.max_modes,
-            criterion=self.criterion,
-            alpha=self.alpha,
-            backend=self.backend,
-            seed=self.seed,
-        )
+        return UncertaintyConfig(**{f.name: getattr(self, f.name) for f in fields(UncertaintyConfig)})
+
+    @classmethod
+    def from_uncertainty(cls, config: UncertaintyConfig, **signal_settings) -> DenoisingConfig:
+        return cls(**asdict(config), **signal_settings)
 
 
 class DenoisingSignal(AssistanceSignal):

@@ -6,15 +6,16 @@ from __future__ import annotations
 import asyncio
 import time
 
-from fastapi import APIRouter, HTTPException, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 from server.api.deps import FleetDep, Operator, Viewer, websocket_principal
 from server.api.robots import detail, summary
 from server.api.schemas import AssistanceRequestOut, CommandAccepted, RobotSummary, TeleopCommandIn
-from server.assistance import AssistanceRequest, QueueError
-from server.fleet import Fleet, FleetError
+from server.assistance import AssistanceRequest
+from server.errors import ServiceError
+from server.fleet import Fleet
 from sim.spaces import TeleopCommand
 
 router = APIRouter(tags=["assistance"])
@@ -35,13 +36,6 @@ def _out(req: AssistanceRequest) -> AssistanceRequestOut:
     )
 
 
-def _call(fn, *args):
-    try:
-        return fn(*args)
-    except (QueueError, FleetError) as exc:
-        raise HTTPException(exc.status, str(exc)) from exc
-
-
 @router.get("/assistance", response_model=list[AssistanceRequestOut])
 def queue(fleet: FleetDep, _: Viewer) -> list[AssistanceRequestOut]:
     """Open requests, unclaimed first, by priority (uncertainty relative to threshold, and waiting time)."""
@@ -51,18 +45,18 @@ def queue(fleet: FleetDep, _: Viewer) -> list[AssistanceRequestOut]:
 @router.post("/robots/{robot_id}/claim", response_model=AssistanceRequestOut)
 def claim(robot_id: int, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
     """Take control of a robot that asked for help: a lease, renewed by heartbeats."""
-    return _out(_call(fleet.claim, robot_id, who.name))
+    return _out(fleet.claim(robot_id, who.name))
 
 
 @router.post("/robots/{robot_id}/heartbeat", response_model=AssistanceRequestOut)
 def heartbeat(robot_id: int, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
-    return _out(_call(fleet.heartbeat, robot_id, who.name))
+    return _out(fleet.heartbeat(robot_id, who.name))
 
 
 @router.post("/robots/{robot_id}/release", response_model=RobotSummary)
 def release(robot_id: int, fleet: FleetDep, who: Operator) -> RobotSummary:
     """Hand the robot back to its policy."""
-    _call(fleet.release, robot_id, who.name)
+    fleet.release(robot_id, who.name)
     return summary(fleet.view(robot_id))
 
 
@@ -72,9 +66,14 @@ def _command(body: TeleopCommandIn) -> TeleopCommand:
 
 @router.post("/robots/{robot_id}/command", response_model=CommandAccepted)
 def command(robot_id: int, body: TeleopCommandIn, fleet: FleetDep, who: Operator) -> CommandAccepted:
-    """One teleop command; applied at the next control tick. Only the lease holder may command."""
-    _call(fleet.command, robot_id, who.name, _command(body))
-    return CommandAccepted(robot_id=robot_id)
+    """One teleop command, applied exactly once at the next control tick. Only the lease holder may
+    command. Commands arriving between two ticks compose into that tick's step (translations add,
+    rotations compose in order, the newest gripper command wins); a command that would take the
+    composed step over the per-step limits (3 cm, 0.2 rad) is refused with 429 and nothing waiting
+    changes: send it again after the next tick. ``pending`` says how many commands the next tick
+    applies."""
+    pending = fleet.command(robot_id, who.name, _command(body))
+    return CommandAccepted(robot_id=robot_id, pending=pending)
 
 
 @router.websocket("/robots/{robot_id}/teleop")
@@ -92,8 +91,8 @@ async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
     await websocket.accept()
     try:
         fleet.robot(robot_id)
-    except FleetError as exc:
-        await websocket.send_json({"error": str(exc), "status": 404})
+    except ServiceError as exc:
+        await websocket.send_json({"error": str(exc), "status": exc.status})
         await websocket.close(code=4404)
         return
 
@@ -112,12 +111,12 @@ async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
                 continue
             try:
                 cmd = _command(TeleopCommandIn.model_validate(data))
-                fleet.command(robot_id, principal.name, cmd)
-                await websocket.send_json({"accepted": True})
+                pending = fleet.command(robot_id, principal.name, cmd)
+                await websocket.send_json({"accepted": True, "pending": pending})
             except ValidationError as exc:
                 errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
                 await websocket.send_json({"error": errors, "status": 422})  # bad values are not echoed
-            except (QueueError, FleetError) as exc:
+            except ServiceError as exc:
                 await websocket.send_json({"error": str(exc), "status": exc.status})
     except WebSocketDisconnect:
         pass

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query
+from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 from sqlalchemy import select
 
-from server.api.deps import FleetDep, SessionsDep, Viewer
-from server.api.schemas import EpisodeOut, PolicyOut, SegmentOut
+from server.api.deps import Admin, FleetDep, SessionsDep, Viewer
+from server.api.schemas import EpisodeOut, PolicyIn, PolicyOut, SegmentOut
 from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
 
 router = APIRouter(tags=["records"])
@@ -72,11 +74,37 @@ def download_segment(segment_id: int, sessions: SessionsDep, _: Viewer) -> FileR
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
 
 
-@router.get("/policies", response_model=list[PolicyOut])
-def policies(sessions: SessionsDep, fleet: FleetDep, _: Viewer) -> list[PolicyOut]:
+def _policy_out(sessions, fleet, version: int | None = None) -> list[PolicyOut]:
+    q = select(PolicyVersion).order_by(PolicyVersion.id)
+    if version is not None:
+        q = q.where(PolicyVersion.id == version)
     with sessions() as s:
-        rows = list(s.scalars(select(PolicyVersion).order_by(PolicyVersion.id)))
+        rows = list(s.scalars(q))
     running: dict[int, list[int]] = {}
     for r in fleet.views():
-        running.setdefault(r.slot.id, []).append(r.id)
+        running.setdefault(r.slot.version, []).append(r.id)
     return [PolicyOut.model_validate(row).model_copy(update={"robots": running.get(row.id, [])}) for row in rows]
+
+
+@router.get("/policies", response_model=list[PolicyOut])
+def policies(sessions: SessionsDep, fleet: FleetDep, _: Viewer) -> list[PolicyOut]:
+    """Policy versions with their status (candidate, active, retired), parent and running robots."""
+    return _policy_out(sessions, fleet)
+
+
+@router.post("/policies", response_model=PolicyOut, status_code=201)
+def register_policy(body: PolicyIn, sessions: SessionsDep, fleet: FleetDep, _: Admin) -> PolicyOut:
+    """Registers a policy folder as a ``candidate`` version (the same folder again: the same version)."""
+    version = fleet.register_policy(Path(body.path), body.task, body.parent_id)
+    return _policy_out(sessions, fleet, version)[0]
+
+
+@router.post("/policies/{version}/activate", response_model=PolicyOut)
+def activate_policy(
+    version: Annotated[int, PathParam(ge=1, le=2**62)], sessions: SessionsDep, fleet: FleetDep, _: Admin
+) -> PolicyOut:
+    """Serves this version to the robots of its task, without a restart: the checkpoint, trace and
+    signals load first, then each robot moves at its next episode boundary (an episode in progress
+    finishes on the version it started with). The task's previously active version is retired."""
+    fleet.activate_policy(version)
+    return _policy_out(sessions, fleet, version)[0]

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter
 
 from server.api.deps import Admin, FleetDep, Viewer
 from server.api.schemas import OperatorView, PoseOut, RobotDetail, RobotSummary, UncertaintyOut
-from server.fleet import Fleet, FleetError, RobotView
+from server.fleet import Fleet
+from server.robot import RobotView
 
 router = APIRouter(prefix="/robots", tags=["robots"])
 
@@ -38,7 +39,7 @@ def summary(robot: RobotView) -> RobotSummary:
         id=robot.id,
         task=robot.task,
         mode=robot.mode,
-        policy_version=robot.slot.id,
+        policy_version=robot.slot.version,
         episode_id=robot.episode_id,
         episode_step=robot.steps,
         uncertainty=robot.u_history[-1] if robot.u_history else None,
@@ -48,15 +49,15 @@ def summary(robot: RobotView) -> RobotSummary:
 
 def _bodies(robot: RobotView) -> dict[str, PoseOut]:
     frame = robot.frame
-    return {k: _pose(p, q) for k, (p, q) in frame["bodies"].items()} if frame else {}
+    return {k: _pose(p, q) for k, (p, q) in frame.bodies.items()} if frame else {}
 
 
 def detail(robot: RobotView) -> RobotDetail:
     frame = robot.frame
     return RobotDetail(
         **summary(robot).model_dump(),
-        pose=_pose(frame["pos"], frame["quat"]) if frame else None,
-        gripper=frame["gripper"] if frame else None,
+        pose=_pose(frame.pos, frame.quat) if frame else None,
+        gripper=frame.gripper if frame else None,
         bodies=_bodies(robot),
         u_history=list(robot.u_history),
         last_uncertainty=_uncertainty(robot),
@@ -70,10 +71,7 @@ def detail(robot: RobotView) -> RobotDetail:
 
 
 def _get(fleet: Fleet, robot_id: int) -> RobotView:
-    try:
-        return fleet.view(robot_id)
-    except FleetError as exc:
-        raise HTTPException(exc.status, str(exc)) from exc
+    return fleet.view(robot_id)
 
 
 @router.get("", response_model=list[RobotSummary])
@@ -95,32 +93,27 @@ def operator_view(robot_id: int, fleet: FleetDep, _: Viewer) -> OperatorView:
         robot_id=robot.id,
         task=robot.task,
         mode=robot.mode,
-        pose=_pose(frame["pos"], frame["quat"]) if frame else None,
-        gripper=frame["gripper"] if frame else None,
+        pose=_pose(frame.pos, frame.quat) if frame else None,
+        gripper=frame.gripper if frame else None,
         bodies=_bodies(robot),
-        goal=frame["goal"] if frame else {},
+        goal=frame.goal if frame else {},
         last_uncertainty=_uncertainty(robot),
     )
 
 
-def _act(fleet: Fleet, robot_id: int, method: str) -> RobotSummary:
-    try:
-        getattr(fleet, method)(robot_id)
-        return summary(fleet.view(robot_id))
-    except FleetError as exc:
-        raise HTTPException(exc.status, str(exc)) from exc
-
-
 @router.post("/{robot_id}/pause", response_model=RobotSummary)
 def pause(robot_id: int, fleet: FleetDep, _: Admin) -> RobotSummary:
-    return _act(fleet, robot_id, "pause")
+    fleet.pause(robot_id)
+    return summary(fleet.view(robot_id))
 
 
 @router.post("/{robot_id}/resume", response_model=RobotSummary)
 def resume(robot_id: int, fleet: FleetDep, _: Admin) -> RobotSummary:
-    return _act(fleet, robot_id, "resume")
+    fleet.resume(robot_id)
+    return summary(fleet.view(robot_id))
 
 
 @router.post("/{robot_id}/reset", response_model=RobotSummary)
 def reset(robot_id: int, fleet: FleetDep, _: Admin) -> RobotSummary:
-    return _act(fleet, robot_id, "reset")
+    fleet.reset(robot_id)
+    return summary(fleet.view(robot_id))

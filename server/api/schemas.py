@@ -54,6 +54,7 @@ class TeleopCommandIn(BaseModel):
 class CommandAccepted(BaseModel):
     robot_id: int
     accepted: bool = True
+    pending: int = Field(1, description="commands the next control tick applies, this one included")
 
 
 class UncertaintyOut(BaseModel):
@@ -159,7 +160,19 @@ class PolicyOut(BaseModel):
     path: str
     task: str
     threshold: float | None
-    robots: list[int] = []
+    status: Literal["candidate", "active", "retired"]
+    parent_id: int | None
+    created_at: datetime
+    robots: list[int] = Field(default_factory=list, description="robots running this version now")
+
+
+class PolicyIn(BaseModel):
+    """A policy folder (``model.safetensors`` + ``config.json``) on the server's disk."""
+
+    model_config = ConfigDict(extra="forbid")
+    path: str = Field(..., min_length=1, max_length=1024)
+    task: str | None = Field(None, max_length=64, description="default: the task in the folder's config.json")
+    parent_id: int | None = Field(None, ge=1, le=2**62)
 
 
 class FleetMetrics(BaseModel):

@@ -11,6 +11,18 @@ from policy.signals.base import CalibrationData, Scores, StepSet
 from policy.signals.sampling import rbf_mmd2
 
 OBS_DIM, CHUNK = 4, 4
+# what each signal calibrates on in ``tiny``'s data: 12 validation steps, 12 of the training steps
+# (diff-dagger's subsample), 3 successful rollout episodes (stac), nothing (the references)
+CALIBRATION_SAMPLES = {
+    "denoising": 12,
+    "output-variance": 12,
+    "diff-dagger": 12,
+    "thrifty": 12,
+    "stac": 3,
+    "hula-offline": 12,
+    "full-teleop": 0,
+    "random": 0,
+}
 FAST = {  # keep every auxiliary training and calibration tiny
     "denoising": {"num_samples": 16, "max_modes": 2},
     "output-variance": {"num_samples": 8, "max_calibration_steps": 24},
@@ -76,7 +88,7 @@ def test_every_signal_calibrates_and_scores_a_tiny_policy(tiny, name, tmp_path):
     if signal.has_models:
         signal.fit(data, progress=False)
     rec = signal.calibrate(data)
-    assert np.isfinite(rec["threshold"]) and rec["samples"] >= 0
+    assert np.isfinite(rec["threshold"]) and rec["samples"] == CALIBRATION_SAMPLES[name]
     batch = _batch(data, np.arange(3), np.array([10, 11, 12]), operator=True)
     scores = signal.score(batch)
     assert scores.value.shape == (3,) and np.isfinite(scores.value).all()
@@ -306,3 +318,17 @@ def test_train_signal_command_calibrates_on_the_policys_validation_split(tmp_pat
     assert main([*args, "--signal", "nope"]) == 2
     assert main([*args, "--signal", "output-variance", "--set", "num_samples=1"]) == 2
     assert "num_samples" in capsys.readouterr().err
+
+
+def test_the_denoising_fallback_serves_the_settings_it_was_calibrated_with(tiny, tmp_path):
+    from policy.checkpoint import save_calibration
+
+    policy, _ = tiny
+    save_calibration(tmp_path, {"threshold": 0.3, "uncertainty": {"num_samples": 16, "radius": 0.02, "max_modes": 2}})
+    signal = load_signal(policy, tmp_path, "denoising")
+    assert signal.threshold == 0.3
+    cfg = signal.estimator.config
+    assert (cfg.num_samples, cfg.radius, cfg.max_modes) == (16, 0.02, 2)
+    save_calibration(tmp_path, {"threshold": 0.3, "uncertainty": {"radius": 7}})
+    with pytest.raises(SignalError, match="radius"):
+        load_signal(policy, tmp_path, "denoising")

@@ -204,7 +204,7 @@ def test_schedule_golden_values():
 
 def test_rollout_scores_every_step_of_every_robot():
     from policy.evaluate import rollout_policy, summarize
-    from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
+    from policy.uncertainty import UncertaintyConfig
 
     torch.manual_seed(0)
     cfg = DiffusionPolicyConfig(
@@ -215,8 +215,10 @@ def test_rollout_scores_every_step_of_every_robot():
     low = np.r_[[-0.1, -0.1, 0.9], [-1] * 6, [-1]]
     high = np.r_[[0.1, 0.1, 1.0], [1] * 6, [1]]
     policy.fit_normalizers(rng.normal(size=(64, 23)), rng.uniform(low, high, size=(64, 10)))
-    est = UncertaintyEstimator(UncertaintyConfig(num_samples=16))
-    episodes, _ = rollout_policy(policy, "lift-cube", [5, 6], n_envs=2, estimator=est, keep_fields=True, progress=False)
+    unc = UncertaintyConfig(num_samples=16)
+    episodes, _ = rollout_policy(
+        policy, "lift-cube", [5, 6], n_envs=2, uncertainty=unc, keep_fields=True, progress=False
+    )
     assert [e.seed for e in episodes] == [5, 6]
     for e in episodes:
         assert len(e.uncertainty) == e.steps == len(e.fields) == len(e.context) > 0

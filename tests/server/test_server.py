@@ -2,7 +2,6 @@
 
 import json
 import math
-import os
 import time
 
 import httpx
@@ -82,15 +81,6 @@ def test_takeover_round_trip_records_a_segment(service):
     claim = httpx.post(api + "/robots/0/claim", headers=op)
     assert claim.status_code == 200, claim.text
     assert _robot(service, 0)["mode"] == "teleop"
-    # the operator's robot steps at the control loop's priority, the rest of the fleet below it
-    fleet = service.server.config.app.state.fleet  # the workers are children of this process
-    nice = service.settings.worker_niceness
-
-    def priority(rid):
-        return os.getpriority(os.PRIO_PROCESS, fleet.robots[rid].process.pid)
-
-    wait_for(lambda: priority(0) == 0 or fleet._priority_denied)  # raising a priority needs CAP_SYS_NICE
-    assert priority(1) == nice and nice > 0
     # a second claimant and a non-holder's command get 409 and change nothing
     assert httpx.post(api + "/robots/0/claim", headers=_h(service, "operator2")).status_code == 409
     cmd = {"delta_pos": [0.0, 0.0, 0.01], "delta_rot": [0, 0, 0], "gripper": -1.0}
@@ -116,7 +106,6 @@ def test_takeover_round_trip_records_a_segment(service):
         assert httpx.post(api + "/robots/0/command", json=cmd, headers=op).status_code == 200
         time.sleep(0.15)
     wait_for(lambda: _robot(service, 0)["assisted_steps"] >= 3)
-    wait_for(lambda: priority(0) == nice)  # handed back: below the control loop again
     seg = wait_for(
         lambda: [
             s
@@ -139,7 +128,8 @@ def test_takeover_round_trip_records_a_segment(service):
     fields = segment.fields
     assert len(fields) == 3 and len(fields[0]["entities"][0]["arrows"]) > 0  # the vector field, for Foxglove
     assert before["episode_id"] == start["episode_id"]
-    assert z0 is not None
+    # the operator's three 1 cm steps up moved the end effector up (the arm lags its targets)
+    assert _robot(service, 0)["pose"]["position"][2] > z0 + 0.005
 
 
 def test_an_expired_lease_requeues_the_request(service):
@@ -161,10 +151,12 @@ def test_the_operator_bot_completes_takeovers_through_the_api(service):
     migrate(service.settings.db_url)
     token = create_token(session_factory(make_engine(service.settings.db_url)), "bot", "operator")
     bot = OperatorBot(service.url, token)
+    started = time.monotonic()
     try:
         bot.run(max_takeovers=2)
     finally:
         bot.close()
+    bot_seconds = time.monotonic() - started
     assert bot.takeovers == 2 and bot.commands >= 2
     api = service.url + "/api/v1"
     segs = wait_for(
@@ -182,7 +174,8 @@ def test_the_operator_bot_completes_takeovers_through_the_api(service):
     assert segment.meta["operator"] == "bot" and len(segment.steps) == segs[0]["steps"]
     metrics = httpx.get(api + "/metrics/fleet", headers=_h(service, "viewer")).json()
     assert metrics["queue_wait_p50_s"] is not None and metrics["operator_busy_s"]["bot"] > 0
-    assert metrics["operator_idle_s"]["bot"] >= 0
+    # in control and idle since its first claim add up to no more than the time the bot has been around
+    assert metrics["operator_idle_s"]["bot"] + metrics["operator_busy_s"]["bot"] <= bot_seconds + 1.0
 
 
 def test_admin_pauses_resumes_and_resets_a_robot(service):
@@ -197,7 +190,8 @@ def test_admin_pauses_resumes_and_resets_a_robot(service):
     assert np.allclose(_robot(service, 1)["pose"]["position"], pose, atol=2e-3)  # holds, no drift
     assert httpx.post(api + "/robots/1/pause", headers=admin).json()["mode"] == "paused"  # idempotent
     assert httpx.post(api + "/robots/1/resume", headers=admin).status_code == 200
-    assert httpx.post(api + "/robots/1/resume", headers=admin).status_code in (200, 409)
+    again = httpx.post(api + "/robots/1/resume", headers=admin)
+    assert again.status_code == 409 and "not paused" in again.json()["detail"]
     assert httpx.post(api + "/robots/42/reset", headers=admin).status_code == 404
     assert httpx.post(api + "/robots/1/reset", headers=admin).status_code == 200
     assert wait_for(lambda: _robot(service, 1)["episode_id"] != episode)
@@ -216,7 +210,7 @@ def test_an_operator_streams_commands_over_the_websocket(service):
         while len([r for r in replies if "state" not in r]) < 2:
             replies.append(json.loads(conn.recv(timeout=10)))
         answers = [r for r in replies if "state" not in r]
-        assert answers[0] == {"accepted": True} and answers[1]["status"] == 422
+        assert answers[0] == {"accepted": True, "pending": 1} and answers[1]["status"] == 422
     wait_for(lambda: _robot(service, 0)["assisted_steps"] > before)
     httpx.post(api + "/robots/0/release", headers=op)
 

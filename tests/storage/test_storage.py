@@ -27,7 +27,9 @@ def _synthetic_episode(path, steps=45, flush_every=10, finish=True, seed=0):
         writer.finish(True, steps, "success")
     else:
         writer.flush()
-        writer._file.close()  # simulate a crash: no summary, no footer
+        crashed = path.read_bytes()  # what a crash leaves on disk: no summary, no footer
+        writer.close()
+        path.write_bytes(crashed)
     return obs, act, ee, quat
 
 

@@ -1,0 +1,325 @@
+"""The one control step: every loop that moves robots calls ``Controller.step``.
+
+The fleet runtime (``server.fleet``), autonomous evaluation (``policy.evaluate``: ``hitl rollout``,
+``hitl report sanity``) and assisted rollouts (``policy.assisted``: ``hitl assist`` and the
+benchmarks) are thin drivers around it, so what we evaluate and benchmark is what we serve.
+
+Per robot, keyed by robot id, the controller owns:
+
+- the observation history (``obs_horizon`` frames; filled with the first frame of an episode and
+  again after a hand-back);
+- the action-chunk queue: a chunk is sampled when the queue is empty and its first
+  ``n_action_steps`` actions are executed in turn, as in training and evaluation;
+- its seeded sampling noise: each episode's DDIM noise comes from a generator seeded by the
+  controller's seed and the episode seed, so a robot's actions do not depend on which other robots
+  share its batch;
+- the mode: ``autonomous`` (the policy acts), ``waiting`` (it asked for help and holds its pose) or
+  ``teleop`` (an operator's commands drive it); the asking signal's trigger state lives in the
+  signal, keyed by the same ids, and is consulted for teleoperated robots too (switch-back rules).
+
+One step takes each robot's new ``RobotFrame`` and any operator command, and returns each robot's
+action, its source (``policy``, ``operator``, ``hold``), every signal's score and decision, and
+whether the robot asked for help or got control back. A robot under teleop that has no command this
+step holds the last target; waiting robots hold without being scored.
+
+Hand-back: ``budgeted`` returns control after ``budget`` operator steps (or sooner with
+``return_after``); ``continuous`` after ``return_after`` (default 1) consecutive operator steps on
+which the asking signal no longer wants help (ThriftyDAgger's switch-back rule, or the score back
+under its threshold).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Literal
+
+import numpy as np
+import torch
+
+from policy.diffusion_policy import DiffusionPolicy
+from policy.signals.base import AssistanceSignal, SignalError, SignalInput, TriggerState
+from policy.uncertainty import UncertaintyBatch, UncertaintyResult
+from sim.frame import RobotFrame
+from sim.spaces import ACTION_DIM, ActionSpace, TeleopCommand, TeleopTarget
+from storage import keys
+
+HAND_BACK = ("budgeted", "continuous")
+
+
+class Mode(StrEnum):
+    AUTONOMOUS = "autonomous"
+    WAITING = "waiting"
+    TELEOP = "teleop"
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """hand_back: ``budgeted`` (``budget`` operator steps per assistance event) or ``continuous``;
+    return_after: hand back after this many consecutive operator steps on which the asking signal no
+    longer wants help (continuous: default 1; budgeted: None, only the budget); assistance: False
+    scores every signal but never asks (shadow runs); seed: the sampling noise's seed."""
+
+    hand_back: Literal["budgeted", "continuous"] = "budgeted"
+    budget: int = 4
+    return_after: int | None = None
+    assistance: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.hand_back not in HAND_BACK:
+            raise ValueError(f"hand_back must be one of {HAND_BACK}, got {self.hand_back!r}")
+        if not (isinstance(self.budget, int) and not isinstance(self.budget, bool) and self.budget >= 1):
+            raise ValueError(f"budget must be an integer >= 1, got {self.budget!r}")
+        if self.return_after is not None and not (isinstance(self.return_after, int) and self.return_after >= 1):
+            raise ValueError(f"return_after must be None or an integer >= 1, got {self.return_after!r}")
+
+    @property
+    def calm_steps(self) -> int | None:
+        """Consecutive no-help operator steps that return control (None: only the budget does)."""
+        if self.return_after is not None:
+            return self.return_after
+        return 1 if self.hand_back == "continuous" else None
+
+
+@dataclass
+class RobotStep:
+    """What the controller decided for one robot at one step.
+
+    action: (10,) raw absolute action to send; source: ``keys.SOURCE_*``; asked: the robot asked for
+    help at this step (it now waits and holds); returned: control went back to the policy after this
+    step; scores / wants: every signal's score and decision (empty when the robot was not scored:
+    waiting, or under teleop without a command); uncertainty: the denoising field when scored; obs:
+    (H, obs_dim) the history the policy saw; current: (10,) the probe centre's raw action; command /
+    target: the operator command applied and what it became.
+    """
+
+    robot_id: int
+    action: np.ndarray
+    source: str
+    mode: Mode  # the mode after this step
+    asked: bool = False
+    returned: bool = False
+    scores: dict[str, float] = field(default_factory=dict)
+    wants: dict[str, bool] = field(default_factory=dict)
+    uncertainty: UncertaintyResult | None = None
+    obs: np.ndarray | None = None
+    current: np.ndarray | None = None
+    command: TeleopCommand | None = None
+    target: TeleopTarget | None = None
+
+    @property
+    def scored(self) -> bool:
+        return bool(self.scores)
+
+
+@dataclass
+class _Robot:
+    generator: torch.Generator
+    mode: Mode = Mode.AUTONOMOUS
+    history: deque = field(default_factory=deque)
+    queue: deque = field(default_factory=deque)
+    hold: np.ndarray | None = None
+    teleop_left: int | None = None
+    calm: int = 0
+
+
+ActionSink = Callable[[int, np.ndarray, str], None]
+
+
+class Controller:
+    """Batched control of the robots of one policy, keyed by robot id.
+
+    signals: name -> calibrated or shadow ``AssistanceSignal``; asking: the one whose decision asks
+    for help and returns control (None: evaluation, nothing asks); action_space: turns operator
+    commands into absolute targets.
+    """
+
+    def __init__(
+        self,
+        policy: DiffusionPolicy,
+        signals: Mapping[str, AssistanceSignal],
+        asking: str | None,
+        action_space: ActionSpace,
+        config: ControllerConfig | None = None,
+    ) -> None:
+        if asking is not None:
+            if asking not in signals:
+                raise SignalError(f"the asking signal {asking!r} is not among the controller's signals")
+            signals[asking].threshold  # noqa: B018 - raises SignalError when it is not calibrated
+        self.policy = policy
+        self.signals = dict(signals)
+        self.asking = asking
+        self.action_space = action_space
+        self.config = config or ControllerConfig()
+        self._robots: dict[int, _Robot] = {}
+
+    # -- robots ---------------------------------------------------------------------------------------
+    def reset(self, robot_id: int, seed: int) -> None:
+        """A new episode: empty history and queue, autonomous, the signals forget the robot, and its
+        sampling noise restarts from (controller seed, ``seed``)."""
+        state = np.random.SeedSequence([self.config.seed, int(seed)]).generate_state(2, np.uint32)
+        g = torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
+        self._robots[robot_id] = _Robot(g)
+        for signal in self.signals.values():
+            signal.reset([robot_id])
+
+    def remove(self, robot_id: int) -> None:
+        """Forgets a robot (it moved to another controller, or left the fleet)."""
+        if self._robots.pop(robot_id, None) is not None:
+            for signal in self.signals.values():
+                signal.reset([robot_id])
+
+    def __contains__(self, robot_id: int) -> bool:
+        return robot_id in self._robots
+
+    def mode(self, robot_id: int) -> Mode:
+        return self._robot(robot_id).mode
+
+    def ask(self, robot_id: int, hold: np.ndarray) -> None:
+        """Puts a robot in ``waiting`` as if it had asked: it holds ``hold`` (10,)."""
+        r = self._robot(robot_id)
+        r.mode, r.hold, r.teleop_left, r.calm = Mode.WAITING, np.asarray(hold, np.float64).copy(), None, 0
+        r.queue.clear()
+
+    def take_over(self, robot_id: int) -> None:
+        """An operator takes control; in budgeted mode the budget starts now."""
+        r = self._robot(robot_id)
+        if r.mode != Mode.TELEOP:
+            r.mode, r.calm = Mode.TELEOP, 0
+            r.teleop_left = self.config.budget if self.config.hand_back == "budgeted" else None
+            r.queue.clear()
+
+    def release(self, robot_id: int) -> None:
+        """Control goes back to the policy, which restarts from the next frame with a fresh history."""
+        r = self._robot(robot_id)
+        r.mode, r.hold, r.teleop_left, r.calm = Mode.AUTONOMOUS, None, None, 0
+        r.history.clear()
+        r.queue.clear()
+
+    def hold_here(self, robot_id: int, hold: np.ndarray) -> None:
+        """A robot waiting or under teleop holds ``hold`` (10,) until its next command."""
+        self._robot(robot_id).hold = np.asarray(hold, np.float64).copy()
+
+    def _robot(self, robot_id: int) -> _Robot:
+        try:
+            return self._robots[robot_id]
+        except KeyError:
+            raise KeyError(f"robot {robot_id} has no episode in this controller (call reset first)") from None
+
+    # -- the step ---------------------------------------------------------------------------------------
+    def step(
+        self,
+        frames: Mapping[int, RobotFrame],
+        commands: Mapping[int, TeleopCommand] | None = None,
+        send: ActionSink | None = None,
+    ) -> dict[int, RobotStep]:
+        """One control step for the robots in ``frames`` (each frame new since the robot's last step).
+
+        commands: robot id -> the operator command to apply now (robots under teleop only); send:
+        called with (robot id, action, source) as soon as an action is known, operator and hold
+        actions before the policy's batch is computed.
+        """
+        commands = commands or {}
+        out: dict[int, RobotStep] = {}
+        scored: list[int] = []
+        for rid, frame in frames.items():
+            r = self._robot(rid)
+            obs = torch.as_tensor(frame.obs, dtype=torch.float32)
+            if not r.history:
+                r.history.extend([obs] * self.policy.config.obs_horizon)
+            else:
+                r.history.append(obs)
+                while len(r.history) > self.policy.config.obs_horizon:
+                    r.history.popleft()
+            cmd = commands.get(rid)
+            if cmd is not None and r.mode != Mode.TELEOP:
+                raise ValueError(f"robot {rid} is {r.mode}, not under teleop: it takes no operator command")
+            if r.mode == Mode.TELEOP and cmd is not None:
+                target = self.action_space.apply_teleop(cmd, frame.pos, frame.rot)
+                r.hold = target.action.copy()
+                out[rid] = RobotStep(rid, target.action, keys.SOURCE_OPERATOR, r.mode, command=cmd, target=target)
+                scored.append(rid)
+            elif r.mode == Mode.AUTONOMOUS:
+                scored.append(rid)
+                continue
+            else:  # waiting, or teleop with no command this step
+                hold = r.hold if r.hold is not None else frame.hold
+                out[rid] = RobotStep(rid, np.asarray(hold, np.float64).copy(), keys.SOURCE_HOLD, r.mode)
+            if send is not None:
+                send(rid, out[rid].action, out[rid].source)
+        if scored:
+            self._score_and_decide(scored, frames, out, send)
+        return {rid: out[rid] for rid in frames}
+
+    def _score_and_decide(
+        self, ids: list[int], frames: Mapping[int, RobotFrame], out: dict[int, RobotStep], send: ActionSink | None
+    ) -> None:
+        policy, cfg = self.policy, self.policy.config
+        robots = [self._robots[i] for i in ids]
+        obs = torch.stack([torch.stack(list(r.history)) for r in robots])
+        current = torch.as_tensor(np.stack([frames[i].hold for i in ids]), dtype=torch.float32)
+        teleop = np.array([r.mode == Mode.TELEOP for r in robots])
+        # a fresh chunk for robots with nothing queued (and the would-be chunk of teleoperated robots)
+        need = [j for j, r in enumerate(robots) if not r.queue]
+        plans = torch.empty((len(ids), cfg.action_horizon, ACTION_DIM))
+        if need:
+            noise = torch.stack(
+                [torch.randn((cfg.action_horizon, ACTION_DIM), generator=robots[j].generator) for j in need]
+            )
+            with torch.no_grad():
+                plans[need] = policy.predict_action_chunk(obs[need], noise=noise).float()
+            for j in need:
+                if not teleop[j]:
+                    robots[j].queue.extend(plans[j, : cfg.n_action_steps].numpy().astype(np.float64))
+        for j, r in enumerate(robots):  # the plan a queued robot is executing, from the action it takes now
+            if j not in need:
+                rest = list(r.queue)
+                rest += [rest[-1]] * (cfg.action_horizon - len(rest))
+                plans[j] = torch.as_tensor(np.stack(rest[: cfg.action_horizon]), dtype=torch.float32)
+        operator = None
+        if teleop.any():
+            operator = torch.full((len(ids), ACTION_DIM), float("nan"))
+            for j in np.flatnonzero(teleop):
+                operator[j] = torch.as_tensor(out[ids[j]].action, dtype=torch.float32)
+        batch = SignalInput(obs, current, np.asarray(ids), action=plans, operator_action=operator)
+        with torch.no_grad():
+            scores = {name: s.score(batch) for name, s in self.signals.items()}
+        state = TriggerState(np.asarray(ids), teleop.copy())
+        wants = {
+            name: np.asarray(s.wants_help(scores[name], state), dtype=bool)
+            for name, s in self.signals.items()
+            if s.calibration is not None
+        }
+        asking = wants.get(self.asking) if self.asking is not None and self.config.assistance else None
+        calm_steps = self.config.calm_steps
+        for j, (rid, r) in enumerate(zip(ids, robots, strict=True)):
+            frame = frames[rid]
+            if teleop[j]:
+                step = out[rid]
+                if r.teleop_left is not None:
+                    r.teleop_left -= 1
+                if asking is not None and calm_steps is not None:
+                    r.calm = r.calm + 1 if not asking[j] else 0
+                done = (r.teleop_left is not None and r.teleop_left <= 0) or (
+                    calm_steps is not None and r.calm >= calm_steps
+                )
+                if done:
+                    self.release(rid)
+                    step.returned = True
+            elif asking is not None and asking[j]:
+                self.ask(rid, frame.hold)
+                step = RobotStep(rid, r.hold.copy(), keys.SOURCE_HOLD, r.mode, asked=True)
+            else:
+                step = RobotStep(rid, r.queue.popleft(), keys.SOURCE_POLICY, r.mode)
+            step.mode = r.mode
+            step.obs, step.current = obs[j].numpy(), current[j].numpy()
+            step.scores = {name: float(sc.value[j]) for name, sc in scores.items()}
+            step.wants = {name: bool(w[j]) for name, w in wants.items()}
+            detail = next((sc.detail for sc in scores.values() if isinstance(sc.detail, UncertaintyBatch)), None)
+            step.uncertainty = detail.robot(j) if detail is not None else None
+            out[rid] = step
+            if send is not None and not teleop[j]:
+                send(rid, step.action, step.source)

@@ -1,0 +1,102 @@
+"""In-process simulated robots stepping in lockstep around the one ``Controller``.
+
+Autonomous evaluation and assisted rollouts both run their episodes here, in waves of ``n_envs``
+robots: each step builds every live robot's ``RobotFrame``, asks the simulated operator (if any) for
+commands for the robots it drives, calls ``Controller.step`` once for the whole wave, and applies the
+actions. Robot ids are the episodes' indices in ``seeds``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from tqdm import tqdm
+
+from policy.controller import Controller, Mode, RobotStep
+from sim.env import StepResult, Task
+from sim.frame import RobotFrame
+from sim.registry import make_task
+from sim.spaces import TeleopCommand
+
+
+class SimulatedOperator(Protocol):
+    """Answers assistance requests from what an operator sees of the task."""
+
+    def take_over(self, robot_id: int, task: Task) -> None: ...
+
+    def command(self, robot_id: int, task: Task) -> TeleopCommand: ...
+
+
+@dataclass
+class Outcome:
+    seed: int
+    success: bool = False
+    steps: int = 0
+    info: dict = field(default_factory=dict)
+
+
+# called for every robot and step before the action is applied: (robot id, task, the decision)
+StepHook = Callable[[int, Task, RobotStep], None]
+
+
+def run_lockstep(
+    controller: Controller,
+    task_name: str,
+    seeds: list[int],
+    n_envs: int,
+    on_step: StepHook | None = None,
+    operator: SimulatedOperator | None = None,
+    progress: bool = True,
+    desc: str = "",
+) -> list[Outcome]:
+    """One episode per seed; an episode ends at success or at the task's horizon."""
+    if n_envs < 1:
+        raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+    tasks = [make_task(task_name) for _ in range(min(n_envs, len(seeds)))]
+    obs_dim = tasks[0].obs_spec.dim
+    if obs_dim != controller.policy.config.obs_dim:
+        raise ValueError(
+            f"policy expects {controller.policy.config.obs_dim}-dim observations, task {task_name} gives {obs_dim}"
+        )
+    outcomes = [Outcome(s) for s in seeds]
+    bar = tqdm(total=len(seeds), desc=desc or task_name, disable=not progress, unit="ep")
+    try:
+        for w in range(0, len(seeds), len(tasks)):
+            wave = {w + j: task for j, task in enumerate(tasks[: len(seeds) - w])}
+            frames: dict[int, RobotFrame] = {}
+            for rid, task in wave.items():
+                task.reset(seeds[rid])
+                controller.reset(rid, seeds[rid])
+                frames[rid] = RobotFrame.from_task(task)
+            while frames:
+                commands = {}
+                if operator is not None:
+                    for rid in frames:
+                        mode = controller.mode(rid)
+                        if mode == Mode.WAITING:  # the simulated operator answers at once
+                            controller.take_over(rid)
+                            operator.take_over(rid, wave[rid])
+                        if mode != Mode.AUTONOMOUS:
+                            commands[rid] = operator.command(rid, wave[rid])
+                steps = controller.step(frames, commands)
+                frames = {}
+                for rid, step in steps.items():
+                    task = wave[rid]
+                    if on_step is not None:
+                        on_step(rid, task, step)
+                    result: StepResult = task.step(step.action)
+                    out = outcomes[rid]
+                    out.steps = result.t
+                    if result.done:
+                        out.success, out.info = bool(result.success), task.episode_info()
+                        controller.remove(rid)
+                        bar.update(1)
+                    else:
+                        frames[rid] = RobotFrame.from_task(task, result)
+    finally:
+        bar.close()
+        for t in tasks:
+            t.close()
+    return outcomes

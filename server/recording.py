@@ -1,0 +1,176 @@
+"""What the fleet writes: episode rows, takeover segments (MCAP + row) and, when asked, whole
+episodes as MCAP files. Paths are absolute, so recovery does not depend on the working directory."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import torch
+from sqlalchemy import case, func, select
+from sqlalchemy.orm import sessionmaker
+
+from policy.controller import RobotStep
+from server.db import EpisodeRecord, SegmentRecord
+from server.robot import Robot
+from sim.frame import RobotFrame
+from storage.episodes import EpisodeWriter
+from storage.segments import SegmentWriter
+
+FINISHED = ("success", "timeout")  # episodes that ended on their own
+
+
+class Recorder:
+    def __init__(self, sessions: sessionmaker, data_dir: Path, record_episodes: bool) -> None:
+        self.sessions = sessions
+        self.data_dir = Path(data_dir).resolve()
+        self.record_episodes = record_episodes
+
+    # -- episode rows ---------------------------------------------------------------------------------
+    def open_episode(self, robot: Robot) -> int:
+        with self.sessions() as s:
+            row = EpisodeRecord(robot_id=robot.id, task=robot.task, seed=robot.seed, policy_id=robot.slot.version)
+            s.add(row)
+            s.commit()
+            return row.id
+
+    def finish_episode(self, robot: Robot, outcome: str, steps: int | None = None) -> None:
+        """Ends the episode's row (once): outcome, steps, assistance and end time."""
+        with self.sessions() as s:
+            row = s.get(EpisodeRecord, robot.episode_id) if robot.episode_id is not None else None
+            if row is not None and row.outcome is None:
+                row.outcome, row.steps, row.ended_at = (
+                    outcome,
+                    robot.steps if steps is None else steps,
+                    datetime.now(UTC),
+                )
+                row.assisted_steps, row.assistance_events = robot.assisted_steps, robot.events
+                s.commit()
+
+    def totals(self) -> dict:
+        """Aggregates over the episodes that ended on their own (one query, no rows loaded)."""
+        with self.sessions() as s:
+            n, success, assisted, events = s.execute(
+                select(
+                    func.count(EpisodeRecord.id),
+                    func.coalesce(func.sum(case((EpisodeRecord.outcome == "success", 1), else_=0)), 0),
+                    func.coalesce(func.sum(EpisodeRecord.assisted_steps), 0),
+                    func.coalesce(func.sum(EpisodeRecord.assistance_events), 0),
+                ).where(EpisodeRecord.outcome.in_(FINISHED))
+            ).one()
+        return {"episodes": int(n), "successes": int(success), "assisted_steps": int(assisted), "events": int(events)}
+
+    # -- whole episodes ---------------------------------------------------------------------------------
+    def frame_arrived(self, robot: Robot, frame: RobotFrame) -> None:
+        """Writes the step sent last with the success that followed it; opens the file at a reset."""
+        if not self.record_episodes:
+            return
+        if robot.pending_step is not None and robot.recorder is not None:
+            t, obs, action, pos, quat, gripper, source, bodies = robot.pending_step
+            robot.recorder.write_step(t, obs, action, pos, quat, gripper, frame.success, source, bodies)
+        robot.pending_step = None
+        if frame.t == 0 and not frame.done and robot.recorder is None:
+            path = self.data_dir / "episodes" / f"robot{robot.id:03d}_ep{robot.episode_id:06d}.mcap"
+            meta = {"task": robot.task, "seed": robot.seed, "robot": robot.id, "policy": str(robot.slot.path)}
+            robot.recorder = EpisodeWriter(path, meta, object_names=list(frame.bodies))
+            with self.sessions() as s:
+                row = s.get(EpisodeRecord, robot.episode_id)
+                if row is not None:
+                    row.path = str(path)
+                    s.commit()
+
+    def action_sent(self, robot: Robot, action: np.ndarray, source: str) -> None:
+        if robot.recorder is not None and robot.frame is not None:
+            f = robot.frame
+            robot.pending_step = (
+                f.t,
+                f.obs,
+                np.asarray(action, np.float64),
+                f.pos,
+                f.quat,
+                f.gripper,
+                source,
+                f.bodies,
+            )
+
+    def close_episode_file(self, robot: Robot, success: bool | None, steps: int, reason: str) -> None:
+        rec, robot.recorder, robot.pending_step = robot.recorder, None, None
+        if rec is None:
+            return
+        if success is None:
+            rec.close()  # unfinished: readable with recover=True
+        else:
+            rec.finish(success, steps, reason)
+
+    # -- takeover segments ------------------------------------------------------------------------------
+    def open_segment(self, robot: Robot, operator: str, reason: str) -> None:
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%f")
+        path = self.data_dir / "segments" / f"robot{robot.id:03d}_ep{robot.episode_id}_{stamp}.mcap"
+        meta = {
+            "robot": robot.id,
+            "episode": robot.episode_id,
+            "policy_version": robot.slot.version,
+            "policy": str(robot.slot.path),
+            "operator": operator,
+            "task": robot.task,
+            "reason": reason,
+            "seed": robot.seed,
+        }
+        robot.segment = SegmentWriter(path, meta)
+        with self.sessions() as s:
+            row = SegmentRecord(
+                robot_id=robot.id,
+                episode_id=robot.episode_id,
+                task=robot.task,
+                policy_id=robot.slot.version,
+                operator=operator,
+                reason=reason,
+                status="open",
+                path=str(path),
+                meta=meta,
+            )
+            s.add(row)
+            s.commit()
+            robot.segment_id = row.id
+
+    def segment_step(self, robot: Robot, frame: RobotFrame, step: RobotStep) -> None:
+        """One operator step: the command, the absolute action and its normalized fine-tune label,
+        every signal's score and the denoising field (world frame)."""
+        if robot.segment is None or step.command is None or step.target is None:
+            return
+        policy = robot.slot.policy
+        label = policy.normalize_action(torch.as_tensor(step.action, dtype=torch.float32)).numpy()
+        field = None
+        if step.uncertainty is not None:
+            world = step.uncertainty.to_world(policy.action_normalizer)
+            field = (world.samples, world.vectors, world.labels, world.arrow_scale())
+        cmd = step.command
+        robot.segment.write_step(
+            frame.obs,
+            {
+                "delta_pos": list(cmd.delta_pos),
+                "delta_rot": list(cmd.delta_rot),
+                "gripper": cmd.gripper,
+                "clamped": list(step.target.clamped),
+            },
+            step.action,
+            label,
+            frame.pos,
+            frame.quat,
+            step.scores.get("denoising"),
+            shadow={k: v for k, v in step.scores.items() if k != "denoising"},
+            field=field,
+        )
+
+    def close_segment(self, robot: Robot, status: str) -> None:
+        if robot.segment is None:
+            return
+        writer, robot.segment = robot.segment, None
+        writer.close(status)
+        with self.sessions() as s:
+            row = s.get(SegmentRecord, robot.segment_id)
+            if row is not None:
+                row.status, row.steps, row.ended_at = status, writer.steps, datetime.now(UTC)
+                s.commit()
+        robot.segment_id = None

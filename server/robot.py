@@ -1,0 +1,76 @@
+"""A fleet robot: its record in the runtime (``Robot``) and the copy the API reads (``RobotView``)."""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field, fields
+
+from policy.uncertainty import UncertaintyResult
+from server.commands import CommandMailbox
+from server.slots import PolicySlot
+from server.workers import RobotWorker
+from sim.frame import RobotFrame
+from storage.episodes import EpisodeWriter
+from storage.segments import SegmentWriter
+
+MODES = ("autonomous", "waiting", "teleop", "paused", "done", "faulted")
+U_HISTORY = 300
+
+
+@dataclass(frozen=True)
+class RobotView:
+    """A robot as the API shows it, copied at the end of each tick and after each service call."""
+
+    id: int
+    task: str
+    slot: PolicySlot
+    mode: str
+    episode_id: int | None
+    steps: int
+    u_history: tuple
+    frame: RobotFrame | None
+    last_result: UncertaintyResult | None
+    episodes_done: int
+    successes: int
+    assisted_steps: int
+    events: int
+    restarts: int
+    fault: str | None
+
+
+@dataclass
+class Robot:
+    id: int
+    task: str
+    slot: PolicySlot
+    seed: int
+    commands: CommandMailbox
+    worker: RobotWorker | None = None
+    mode: str = "autonomous"
+    frame: RobotFrame | None = None
+    fresh: bool = False  # ``frame`` arrived since the robot's last step
+    episode_id: int | None = None
+    steps: int = 0
+    assisted_steps: int = 0
+    events: int = 0
+    episodes_done: int = 0
+    successes: int = 0
+    u_history: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))
+    last_result: UncertaintyResult | None = None
+    restarts: int = 0
+    restart_at: float | None = None
+    fault: str | None = None
+    paused_from: str | None = None
+    latencies: deque = field(default_factory=lambda: deque(maxlen=1000))  # command arrival -> sent (s)
+    action_periods: deque = field(default_factory=lambda: deque(maxlen=1000))  # seconds between actions sent
+    last_sent: float | None = None
+    segment: SegmentWriter | None = None
+    segment_id: int | None = None
+    recorder: EpisodeWriter | None = None  # whole-episode recording (settings.record_episodes)
+    pending_step: tuple | None = None  # the step sent, written once its outcome arrives
+    view: RobotView | None = None  # what readers see (``Fleet._publish``)
+
+    def publish(self) -> None:
+        """A consistent copy of what the API shows, so readers never wait for a tick in progress."""
+        values = {f.name: getattr(self, f.name) for f in fields(RobotView)}
+        self.view = RobotView(**values | {"u_history": tuple(self.u_history)})

@@ -1,0 +1,69 @@
+"""Policy slots: a policy version loaded for serving (weights, trace, signals, threshold) with the
+controller that drives its robots.
+
+``load_slot`` does the slow part (reading the checkpoint, tracing, loading every signal) and touches
+no fleet state, so the fleet calls it outside its lock; swapping a slot in is then one assignment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from policy.checkpoint import CheckpointError, load_policy
+from policy.controller import Controller, ControllerConfig
+from policy.diffusion_policy import DiffusionPolicy
+from policy.signals import SignalError, load_signal
+from server.errors import ServiceError
+from server.settings import Settings
+from sim.registry import make_task
+
+
+@dataclass
+class PolicySlot:
+    """version: the ``PolicyVersion`` row's id; threshold: the denoising metric's (what the console
+    draws U against); controller: the one control step of this version's robots."""
+
+    version: int
+    path: Path
+    task: str
+    policy: DiffusionPolicy
+    threshold: float
+    controller: Controller
+
+    @property
+    def asking(self) -> str:
+        return self.controller.asking or ""
+
+
+def controller_config(settings: Settings) -> ControllerConfig:
+    return ControllerConfig(
+        hand_back=settings.trigger_mode,
+        budget=settings.budget_steps,
+        return_after=settings.auto_return_steps,
+        assistance=settings.assistance,
+        seed=settings.seed,
+    )
+
+
+def load_slot(settings: Settings, path: Path, task: str, version: int) -> PolicySlot:
+    """The policy folder ``path`` ready to serve ``task`` (ServiceError 422 naming what is wrong)."""
+    try:
+        policy, _ = load_policy(path)
+    except CheckpointError as exc:
+        raise ServiceError(422, f"policy {path}: {exc}") from exc
+    spec = make_task(task)
+    if policy.config.obs_dim != spec.obs_spec.dim:
+        raise ServiceError(
+            422, f"policy {path} expects {policy.config.obs_dim}-dim observations, {task} gives {spec.obs_spec.dim}"
+        )
+    if settings.trace_policies:
+        policy.freeze_for_inference()
+    signals = {}
+    for name in dict.fromkeys([settings.signal, "denoising", *settings.shadow_signals]):
+        try:
+            signals[name] = load_signal(policy, path, name)
+        except (SignalError, ValueError) as exc:
+            raise ServiceError(422, f"policy {path}: signal {name!r} is not ready: {exc}") from exc
+    controller = Controller(policy, signals, settings.signal, spec.action_space, controller_config(settings))
+    return PolicySlot(version, path, task, policy, float(signals["denoising"].threshold), controller)

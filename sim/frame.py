@@ -1,0 +1,74 @@
+"""``RobotFrame``: what one robot reports after a reset or a step, the one type every loop reads.
+
+The fleet's robot workers send it, in-process rollouts build it from their ``Task``, and the
+controller (``policy.controller``) acts on it. Arrays are plain numpy, so a frame pickles across a
+process boundary.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sim.env import StepResult, Task
+
+
+@dataclass(frozen=True)
+class RobotFrame:
+    """One robot's state after a reset (``t == 0``) or a control step.
+
+    obs: (obs_dim,) float32 observation; hold: (10,) the action that holds the current pose and the
+    gripper command in force; pos: (3,) end-effector position (m, world frame); rot: (3, 3) its
+    rotation matrix; quat: (4,) the same rotation as a quaternion (x, y, z, w); gripper: finger gap
+    (m); bodies: object name -> (position (3,), quaternion xyzw (4,)); goal: what a human operator
+    sees of the scene's goal (plain JSON values); t: steps since the reset; success / done: the
+    task's outcome after this step; info: the task's episode details, set once ``done``.
+    """
+
+    obs: np.ndarray
+    hold: np.ndarray
+    pos: np.ndarray
+    rot: np.ndarray
+    quat: np.ndarray
+    gripper: float
+    bodies: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    goal: dict = field(default_factory=dict)
+    t: int = 0
+    success: bool = False
+    done: bool = False
+    info: dict = field(default_factory=dict)
+
+    @property
+    def gripper_command(self) -> float:
+        """The gripper command in force (-1 open .. +1 closed)."""
+        return float(self.hold[9])
+
+    @classmethod
+    def from_task(cls, task: Task, result: StepResult | None = None) -> RobotFrame:
+        """The frame of ``task`` as it stands: after ``result`` (a step), or right after a reset."""
+        pos, rot = task.ee_pose()
+        done = bool(result.done) if result is not None else False
+        return cls(
+            obs=(task.observe() if result is None else result.obs).astype(np.float32),
+            hold=task.hold_action().astype(np.float64),
+            pos=pos,
+            rot=rot,
+            quat=Rotation.from_matrix(rot).as_quat(),
+            gripper=float(task.gripper_opening()),
+            bodies={k: (np.asarray(p), np.asarray(q)) for k, (p, q) in task.object_poses().items()},
+            goal={k: _jsonable(v) for k, v in (task.privileged() or {}).items()},
+            t=0 if result is None else int(result.t),
+            success=bool(result.success) if result is not None else False,
+            done=done,
+            info=task.episode_info() if done else {},
+        )
+
+
+def _jsonable(v):
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, np.generic):
+        return v.item()
+    return v

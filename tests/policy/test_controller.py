@@ -1,0 +1,190 @@
+"""The one control step: chunk queues, per-robot noise, asking, takeovers and hand-back."""
+
+import numpy as np
+import pytest
+import torch
+
+from policy.config import DiffusionPolicyConfig
+from policy.controller import Controller, ControllerConfig, Mode
+from policy.diffusion_policy import DiffusionPolicy
+from policy.signals.base import Scores
+from sim.frame import RobotFrame
+from sim.spaces import TeleopCommand
+from storage import keys
+from tests.helpers import KinematicTask, tiny_policy
+
+
+class Scripted:
+    """A hand-made signal: asks when told to, and under teleop wants help until told otherwise."""
+
+    name = "scripted"
+    calibration = {"threshold": 0.5}
+    threshold = 0.5
+
+    def __init__(self):
+        self.ask, self.keep = set(), set()
+        self.seen_teleop = []
+
+    def reset(self, robot_ids=None):
+        pass
+
+    def score(self, batch):
+        return Scores(np.array([float(i in self.ask) for i in batch.robot_ids]))
+
+    def wants_help(self, scores, state):
+        self.seen_teleop.append(state.teleop.copy())
+        pairs = zip(state.robot_ids, state.teleop, strict=True)
+        return np.array([(rid in self.keep) if tele else (rid in self.ask) for rid, tele in pairs])
+
+
+def _chunked(horizon=4, steps=2):
+    torch.manual_seed(0)
+    p = DiffusionPolicy(
+        DiffusionPolicyConfig(
+            obs_dim=23,
+            action_horizon=horizon,
+            n_action_steps=steps,
+            network="mlp",
+            mlp_hidden=16,
+            step_embed_dim=8,
+            num_inference_steps=2,
+        )
+    )
+    p.fit_normalizers(np.random.default_rng(0).normal(size=(64, 23)), np.random.default_rng(1).uniform(size=(64, 10)))
+    return p.eval()
+
+
+def _frames(tasks, results=None):
+    return {rid: RobotFrame.from_task(t, None if results is None else results[rid]) for rid, t in tasks.items()}
+
+
+def _run(controller, tasks, steps, commands=None):
+    """Steps every robot ``steps`` times; returns each robot's list of RobotSteps."""
+    frames = _frames(tasks)
+    out = {rid: [] for rid in tasks}
+    for _ in range(steps):
+        decided = controller.step(frames, commands(controller) if commands else None)
+        results = {}
+        for rid, st in decided.items():
+            out[rid].append(st)
+            results[rid] = tasks[rid].step(st.action)
+        frames = _frames(tasks, results)
+    return out
+
+
+def _tasks(seeds):
+    tasks = {}
+    for rid, seed in seeds.items():
+        tasks[rid] = KinematicTask()
+        tasks[rid].reset(seed)
+    return tasks
+
+
+def test_a_chunk_is_queued_and_executed_as_trained():
+    policy = _chunked(horizon=4, steps=2)
+    calls = []
+    sample = policy.predict_action_chunk
+
+    def counting(obs, generator=None, noise=None):
+        calls.append(obs.shape[0])
+        return sample(obs, generator, noise)
+
+    policy.predict_action_chunk = counting
+    controller = Controller(policy, {}, None, KinematicTask().action_space)
+    controller.reset(0, seed=3)
+    steps = _run(controller, _tasks({0: 3}), 6)[0]
+    assert len(calls) == 3  # one chunk per n_action_steps = 2 steps, not one per step
+    assert all(s.source == keys.SOURCE_POLICY for s in steps)
+    # the executed pairs are the first two actions of one chunk, sampled from this robot's noise
+    controller.reset(0, seed=3)
+    first = controller._robots[0].generator  # noqa: SLF001 - compare with the same seeded draw
+    noise = torch.randn((4, 10), generator=first)
+    obs = torch.as_tensor(steps[0].obs)[None]
+    chunk = sample(obs, noise=noise[None])[0].numpy()
+    np.testing.assert_allclose(steps[0].action, chunk[0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(steps[1].action, chunk[1], rtol=1e-5, atol=1e-6)
+
+
+def test_actions_depend_on_the_episode_seed_not_on_the_batch():
+    policy = tiny_policy()
+    space = KinematicTask().action_space
+    alone = Controller(policy, {}, None, space)
+    alone.reset(7, seed=11)
+    solo = _run(alone, _tasks({7: 11}), 5)[7]
+    crowd = Controller(policy, {}, None, space)
+    for rid, seed in {1: 5, 7: 11, 9: 2}.items():
+        crowd.reset(rid, seed)
+    together = _run(crowd, _tasks({1: 5, 7: 11, 9: 2}), 5)
+    for a, b in zip(solo, together[7], strict=True):
+        np.testing.assert_allclose(a.action, b.action, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(together[1][0].action, together[7][0].action)
+
+
+def test_asking_holding_a_budgeted_takeover_and_a_fresh_history_on_hand_back():
+    policy, signal = tiny_policy(), Scripted()
+    controller = Controller(
+        policy, {"scripted": signal}, "scripted", KinematicTask().action_space, ControllerConfig(budget=2)
+    )
+    controller.reset(0, seed=1)
+    tasks = _tasks({0: 1})
+    signal.ask.add(0)
+    frames = _frames(tasks)
+    asked = controller.step(frames)[0]
+    assert asked.asked and asked.source == keys.SOURCE_HOLD and asked.mode == Mode.WAITING
+    np.testing.assert_allclose(asked.action, frames[0].hold)
+    held = controller.step(frames)[0]  # nobody has claimed it: it holds, unscored
+    assert held.source == keys.SOURCE_HOLD and not held.scored
+    signal.ask.clear()
+    controller.take_over(0)
+    up = TeleopCommand((0.0, 0.0, 0.01), (0.0, 0.0, 0.0), 1.0)
+    first = controller.step(frames, {0: up})[0]
+    assert first.source == keys.SOURCE_OPERATOR and not first.returned and first.mode == Mode.TELEOP
+    np.testing.assert_allclose(first.action[:3], frames[0].pos + [0, 0, 0.01])
+    assert first.action[9] == 1.0 and first.scored  # scored in shadow, for the segment and switch-back
+    idle = controller.step(frames)[0]  # teleop without a command: holds the operator's last target
+    np.testing.assert_allclose(idle.action, first.action)
+    second = controller.step(frames, {0: up})[0]
+    assert second.returned and second.mode == Mode.AUTONOMOUS  # budget of 2 operator steps
+    with pytest.raises(ValueError, match="not under teleop"):
+        controller.step(frames, {0: up})
+    back = controller.step(frames)[0]
+    assert back.source == keys.SOURCE_POLICY
+    assert back.obs.shape == (1, 23) and np.allclose(back.obs[0], frames[0].obs)  # a fresh history
+    assert any(t.any() for t in signal.seen_teleop)  # the trigger rule saw the teleop flags
+
+
+def test_continuous_mode_returns_control_when_the_switch_back_rule_fires():
+    policy, signal = tiny_policy(), Scripted()
+    controller = Controller(
+        policy, {"scripted": signal}, "scripted", KinematicTask().action_space, ControllerConfig(hand_back="continuous")
+    )
+    controller.reset(4, seed=1)
+    frames = _frames(_tasks({4: 1}))
+    controller.ask(4, frames[4].hold)
+    controller.take_over(4)
+    signal.keep.add(4)  # the operator's help is still wanted
+    cmd = TeleopCommand((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), -1.0)
+    for _ in range(3):
+        assert not controller.step(frames, {4: cmd})[4].returned
+    signal.keep.clear()  # the rule says the policy can take over again
+    st = controller.step(frames, {4: cmd})[4]
+    assert st.returned and controller.mode(4) == Mode.AUTONOMOUS
+
+
+def test_a_shadow_run_scores_but_never_asks():
+    policy, signal = tiny_policy(), Scripted()
+    controller = Controller(
+        policy, {"scripted": signal}, "scripted", KinematicTask().action_space, ControllerConfig(assistance=False)
+    )
+    controller.reset(0, seed=1)
+    signal.ask.add(0)
+    steps = _run(controller, _tasks({0: 1}), 3)[0]
+    assert all(s.source == keys.SOURCE_POLICY and s.wants["scripted"] and not s.asked for s in steps)
+
+
+def test_the_asking_signal_must_be_calibrated():
+    from policy.signals import SignalError, make_signal
+
+    policy = tiny_policy()
+    with pytest.raises(SignalError, match="not calibrated"):
+        Controller(policy, {"denoising": make_signal("denoising", policy)}, "denoising", KinematicTask().action_space)

@@ -1,0 +1,194 @@
+"""The fleet runtime on in-process workers and a kinematic stand-in task: fast, no uvicorn, no sleeps.
+Ticks are driven by hand, so every assertion is about one known sequence of ticks."""
+
+import numpy as np
+import pytest
+
+from policy.assisted import AssistConfig, run_assisted
+from policy.evaluate import rollout_policy
+from server.db import PolicyVersion, make_engine, migrate, session_factory
+from server.errors import ServiceError
+from server.fleet import Fleet
+from server.settings import RobotGroup, Settings
+from server.workers import InProcessWorker, Priority, in_process_workers
+from sim.spaces import TeleopCommand
+from tests.helpers import KinematicTask, tiny_policy_folder
+
+
+class Recorded(InProcessWorker):
+    """An in-process worker that remembers what it was asked and its priority hints."""
+
+    def __init__(self, task):
+        super().__init__(task)
+        self.actions, self.priority = [], None
+
+    def request_step(self, action):
+        self.actions.append(np.array(action))
+        super().request_step(action)
+
+    def prioritize(self, priority):
+        self.priority = priority
+        return True
+
+
+def _fleet(tmp_path, threshold=-1.0, horizon=1000, count=1, workers=None, **settings):
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold)
+    s = Settings(
+        data_dir=tmp_path / "var",
+        robots=[RobotGroup(task="lift-cube", count=count, policy=policy)],
+        trace_policies=False,
+        **settings,
+    )
+    migrate(s.db_url)
+    made = []
+
+    def factory(robot_id, task):
+        made.append(Recorded(KinematicTask(horizon)))
+        return made[-1]
+
+    fleet = Fleet(s, session_factory(make_engine(s.db_url)), workers or factory)
+    for r in fleet.robots.values():
+        fleet._spawn(r)  # noqa: SLF001 - start the workers without the loop thread: ticks by hand
+    return fleet, made
+
+
+UP = TeleopCommand((0.0, 0.0, 0.01), (0.0, 0.0, 0.0), 1.0)
+
+
+def test_commands_between_ticks_are_applied_once_in_order_or_refused(tmp_path):
+    fleet, workers = _fleet(tmp_path)
+    fleet.tick()  # threshold -1: the robot asks at once and holds
+    assert fleet.view(0).mode == "waiting" and fleet.queue.get(0) is not None
+    fleet.claim(0, "op")
+    assert fleet.view(0).mode == "teleop" and workers[0].priority == Priority.BACKGROUND
+    fleet.tick()  # no command yet: it holds
+    assert workers[0].priority == Priority.CONTROL  # the operator's robot runs at the loop's priority
+    z0 = fleet.view(0).frame.pos[2]
+    turn = TeleopCommand((0.0, 0.0, 0.0), (0.0, 0.0, 0.1), 1.0)
+    # a stream faster than the control rate: three commands before one tick
+    assert [fleet.command(0, "op", c) for c in (UP, turn, UP)] == [1, 2, 3]
+    with pytest.raises(ServiceError) as too_much:
+        fleet.command(0, "op", TeleopCommand((0.0, 0.0, 0.02), (0.0, 0.0, 0.0), 1.0))
+    assert too_much.value.status == 429 and "per-step limits" in str(too_much.value)
+    before = len(workers[0].actions)
+    fleet.tick()
+    sent = workers[0].actions[before:]
+    assert len(sent) == 1  # the three accepted commands, composed into one step, applied once
+    np.testing.assert_allclose(sent[0][2], z0 + 0.02, atol=1e-9)
+    assert fleet.view(0).assisted_steps == 1
+    fleet.tick()  # nothing new: the robot holds the composed target, no command is replayed
+    np.testing.assert_allclose(workers[0].actions[-1], sent[0])
+    assert fleet.view(0).assisted_steps == 1
+    with pytest.raises(ServiceError) as not_holder:
+        fleet.command(0, "someone-else", UP)
+    assert not_holder.value.status == 409
+    fleet.stop()
+
+
+def test_budgeted_takeover_hands_back_and_a_lease_expiry_requeues(tmp_path):
+    fleet, workers = _fleet(tmp_path, budget_steps=2, lease_seconds=0.05, count=2)
+    fleet.tick()
+    fleet.claim(0, "op")
+    for _ in range(2):
+        fleet.command(0, "op", UP)
+        fleet.tick()
+    assert fleet.view(0).mode in ("autonomous", "waiting")  # handed back (and, at threshold -1, asks again)
+    assert fleet.view(0).assisted_steps == 2 and workers[0].priority is not None
+    fleet.claim(1, "op")
+    import time
+
+    time.sleep(0.1)
+    fleet.tick()
+    assert fleet.view(1).mode == "waiting" and fleet.queue.get(1).holder is None
+    with pytest.raises(ServiceError) as gone:
+        fleet.command(1, "op", UP)
+    assert gone.value.status == 409
+    fleet.stop()
+
+
+def test_autonomous_robots_are_not_commandable_and_unknown_robots_are_404(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9)
+    fleet.tick()
+    with pytest.raises(ServiceError) as auto:
+        fleet.command(0, "op", UP)
+    assert auto.value.status == 409
+    with pytest.raises(ServiceError) as missing:
+        fleet.command(5, "op", UP)
+    assert missing.value.status == 404
+    fleet.stop()
+
+
+def test_a_new_policy_version_takes_over_at_the_next_episode(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=4)
+    fleet.tick()
+    old = fleet.view(0).slot.version
+    episode = fleet.view(0).episode_id
+    other = tiny_policy_folder(tmp_path / "policy-v2", "lift-cube", 1e9)
+    version = fleet.register_policy(other, parent=old)
+    with fleet.sessions() as s:
+        assert s.get(PolicyVersion, version).status == "candidate"
+    fleet.activate_policy(version)
+    fleet.tick()
+    assert fleet.view(0).slot.version == old and fleet.view(0).episode_id == episode  # finishes its episode
+    for _ in range(6):
+        fleet.tick()
+    assert fleet.view(0).episode_id != episode and fleet.view(0).slot.version == version
+    with fleet.sessions() as s:
+        assert s.get(PolicyVersion, version).status == "active" and s.get(PolicyVersion, version).parent_id == old
+        assert s.get(PolicyVersion, old).status == "retired"
+    with pytest.raises(ServiceError) as missing:
+        fleet.activate_policy(999)
+    assert missing.value.status == 404
+    with pytest.raises(ServiceError) as broken:
+        fleet.register_policy(tmp_path / "nowhere")
+    assert broken.value.status == 422
+    fleet.stop()
+
+
+def test_metrics_aggregate_finished_episodes(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=3, count=2)
+    for _ in range(10):
+        fleet.tick()
+    m = fleet.metrics()
+    assert m["episodes"] >= 4 and m["success_rate"] == 0.0 and m["robots_by_mode"]["autonomous"] == 2
+    fleet.stop()
+
+
+def test_served_evaluated_and_assisted_episodes_take_the_same_actions(tmp_path):
+    """The fleet (real simulator, in-process workers), ``hitl rollout``'s loop and ``hitl assist``'s
+    loop, same seeds and settings, send the same actions: one controller."""
+    fleet, _ = _fleet(tmp_path, threshold=1e9, count=2, workers=_recording_real_workers())
+    workers = [fleet.robots[i].worker for i in (0, 1)]
+    seeds = [fleet.robots[i].seed for i in (0, 1)]
+    episodes = [fleet.view(i).episode_id for i in (0, 1)]
+    for _ in range(40):
+        fleet.tick()
+    assert [fleet.view(i).episode_id for i in (0, 1)] == episodes  # still the first episodes
+    fleet.stop()
+    policy = fleet.robots[0].slot.policy
+    evaluated, _ = rollout_policy(policy, "lift-cube", seeds, n_envs=2, trace=True, progress=False)
+    driver = fleet.robots[0].slot.controller.signals["denoising"]  # calibrated at 1e9: never asks
+    assisted, _ = run_assisted(policy, "lift-cube", seeds, driver, config=AssistConfig(n_envs=2), progress=False)
+    for worker, ep, helped in zip(workers, evaluated, assisted, strict=True):
+        served = np.stack(worker.actions[:30])
+        assert len(ep.trace) >= 30 and helped.events == 0
+        np.testing.assert_allclose(served, np.stack([t[2] for t in ep.trace[:30]]), rtol=0, atol=1e-5)
+        np.testing.assert_allclose(served, np.stack(helped.actions[:30]), rtol=0, atol=1e-5)
+
+
+def _recording_real_workers():
+    real = in_process_workers()
+
+    def factory(robot_id, task):
+        worker = real(robot_id, task)
+        sent = []
+        step = worker.request_step
+
+        def request_step(action):
+            sent.append(np.array(action))
+            step(action)
+
+        worker.request_step, worker.actions = request_step, sent
+        return worker
+
+    return factory
