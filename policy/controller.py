@@ -295,6 +295,7 @@ class Controller:
         }
         asking = wants.get(self.asking) if self.asking is not None and self.config.assistance else None
         calm_steps = self.config.calm_steps
+        field = next((sc.detail for sc in scores.values() if isinstance(sc.detail, UncertaintyBatch)), None)
         for j, (rid, r) in enumerate(zip(ids, robots, strict=True)):
             frame = frames[rid]
             if teleop[j]:
@@ -318,8 +319,7 @@ class Controller:
             step.obs, step.current = obs[j].numpy(), current[j].numpy()
             step.scores = {name: float(sc.value[j]) for name, sc in scores.items()}
             step.wants = {name: bool(w[j]) for name, w in wants.items()}
-            detail = next((sc.detail for sc in scores.values() if isinstance(sc.detail, UncertaintyBatch)), None)
-            step.uncertainty = detail.robot(j) if detail is not None else None
+            step.uncertainty = field.robot(j) if field is not None else None
             out[rid] = step
             if send is not None and not teleop[j]:
                 send(rid, step.action, step.source)
