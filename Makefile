@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test lint docs policy-docs signals-docs clean
+.PHONY: install demo test lint docs policy-docs signals-docs loop-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -69,6 +69,11 @@ signals-docs: install
 	$(BIN)/hitl assist --policy runs/lift-cube --task lift-hammer --driver denoising --shadow all --episodes 8 --plot docs/figures --quiet > docs/assist-lift-hammer.json
 	$(BIN)/hitl assist --policy runs/lift-cube-c8 --task lift-hammer --driver stac --shadow denoising --episodes 8 --quiet > docs/assist-lift-hammer-stac.json
 	$(BIN)/hitl bench fleet --robots 1,4,8,16 --quiet > docs/bench-fleet.json
+
+# The demo fleet served with the operator bot helping, 20 minutes per hand-back mode (docs/service.md, "The loop").
+loop-docs: install
+	$(BIN)/hitl bench loop --seconds 1200 --mode continuous --quiet > docs/loop-continuous.json
+	$(BIN)/hitl bench loop --seconds 1200 --mode budgeted --quiet > docs/loop-budgeted.json
 
 clean:
 	rm -rf $(VENV) .pytest_cache

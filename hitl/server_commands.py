@@ -17,14 +17,20 @@ def _settings(args: argparse.Namespace):
 def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from server.app import RedactTokens, create_app
+    from server.app import create_app
 
     settings = _settings(args)
+    # one format for the service's and uvicorn's lines (log_config=None: uvicorn's loggers propagate here);
+    # the app's lifespan adds token redaction and sends successful polling GETs to debug (server.app)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    logging.getLogger("uvicorn.access").addFilter(RedactTokens())
-    print(f"hitl: API docs at http://{settings.host}:{settings.port}/docs", flush=True)
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
-    return 0
+    if args.log_level == "debug":
+        logging.getLogger("hitl").setLevel(logging.DEBUG)
+    app = create_app(settings)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level, log_config=None)
+    server = uvicorn.Server(config)
+    app.state.server = server  # the "ready: ..." line names the address this server bound
+    server.run()
+    return 0 if server.started else 1
 
 
 def _cmd_token(args: argparse.Namespace) -> int:
@@ -83,6 +89,53 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_api(args: argparse.Namespace) -> int:
+    import json
+
+    from server.bench_api import bench_api
+
+    if not 1 <= args.robots <= 64:
+        raise ValueError(f"--robots must be in 1..64, got {args.robots}")
+    if not 1 <= args.clients <= 1000:
+        raise ValueError(f"--clients must be in 1..1000, got {args.clients}")
+    if args.seconds <= 0 or args.idle_seconds <= 0:
+        raise ValueError("--seconds and --idle-seconds must be positive")
+    if not (0 < args.poll_hz <= 1000 and 0 < args.command_hz <= 1000):
+        raise ValueError("--poll-hz and --command-hz must be in (0, 1000]")
+    result = bench_api(
+        robots=args.robots,
+        clients=args.clients,
+        seconds=args.seconds,
+        idle_seconds=args.idle_seconds,
+        task=args.task,
+        worker=args.worker,
+        control_hz=args.control_hz,
+        poll_hz=args.poll_hz,
+        command_hz=args.command_hz,
+        progress=not args.quiet,
+    )
+    print(json.dumps(result, indent=None if args.json else 2))
+    return 0
+
+
+def _cmd_bench_loop(args: argparse.Namespace) -> int:
+    import json
+
+    from server.bench_loop import run_loop
+
+    if args.seconds <= 0:
+        raise ValueError(f"--seconds must be positive, got {args.seconds}")
+    env = {}
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.isidentifier():
+            raise ValueError(f"--set takes KEY=VALUE with a settings key, got {item!r}")
+        env["HITL_" + key.upper()] = value
+    result = run_loop(args.seconds, args.mode, args.config, args.data_dir, env, not args.no_bot, not args.quiet)
+    print(json.dumps(result, indent=None if args.json else 2))
+    return 0
+
+
 def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
     from server.auth import ROLES
 
@@ -90,6 +143,12 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--host", default=None)
     p.add_argument("--port", type=int, default=None)
     p.add_argument("--config", type=Path, default=None, help="TOML settings file (HITL_* variables override it)")
+    p.add_argument(
+        "--log-level",
+        choices=["debug", "info", "warning"],
+        default="info",
+        help="debug adds the access-log lines of successful polling GETs (robots, queue, metrics, health)",
+    )
     p.set_defaults(func=_cmd_serve)
 
     p = sub.add_parser("operator-bot", help="simulated operator: claims queued robots and drives them via the API")
@@ -107,6 +166,31 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_fleet)
+
+    q = bench.add_parser("api", help="the service under concurrent REST/WebSocket clients; control rate idle vs load")
+    q.add_argument("--robots", type=int, default=16)
+    q.add_argument("--clients", type=int, default=50, help="REST pollers, WebSocket streams and queue cyclers")
+    q.add_argument("--seconds", type=float, default=30.0, help="measurement under load")
+    q.add_argument("--idle-seconds", type=float, default=15.0, help="measurement of the idle fleet, before")
+    q.add_argument("--task", default="lift-cube")
+    q.add_argument("--worker", choices=["process", "in-process"], default="process")
+    q.add_argument("--control-hz", type=float, default=10.0)
+    q.add_argument("--poll-hz", type=float, default=5.0, help="requests per second of each REST poller")
+    q.add_argument("--command-hz", type=float, default=30.0, help="commands per second of each WebSocket stream")
+    q.add_argument("--json", action="store_true")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_api)
+
+    q = bench.add_parser("loop", help="the demo fleet served with the operator bot helping: success per task")
+    q.add_argument("--seconds", type=float, default=1200.0, help="wall-clock time after the service is ready")
+    q.add_argument("--mode", choices=["budgeted", "continuous"], default="continuous", help="hand-back mode")
+    q.add_argument("--config", type=Path, default=None, help="service config (default: configs/demo.toml)")
+    q.add_argument("--data-dir", type=Path, default=None, help="where the run's database goes (default: a temp dir)")
+    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown_steps=20")
+    q.add_argument("--no-bot", action="store_true", help="no operator: what the fleet does on its own")
+    q.add_argument("--json", action="store_true")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_loop)
 
     p = sub.add_parser("token", help="create or revoke API tokens")
     p.add_argument("action", choices=["create", "revoke"])

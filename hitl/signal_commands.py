@@ -127,13 +127,17 @@ def _cmd_assist(args: argparse.Namespace) -> int:
     thresholds = {name: s.threshold for name, s in signals.items()}
     driver = signals.pop(args.driver)
     seeds = list(range(args.seed, args.seed + args.episodes))
-    cfg = AssistConfig(mode=args.mode, budget=args.budget, n_envs=args.envs)
+    cfg = AssistConfig(
+        mode=args.mode, budget=args.budget, cooldown=args.cooldown, watchdog=args.watchdog, n_envs=args.envs
+    )
     episodes, timing = run_assisted(policy, args.task or info["task"], seeds, driver, signals, cfg, not args.quiet)
     out = {
         "task": args.task or info["task"],
         "policy": str(args.policy),
         "mode": args.mode,
         "budget": args.budget if args.mode == "budgeted" else None,
+        "cooldown": args.cooldown,
+        "watchdog": args.watchdog,
         **summarize_assisted(episodes),
         "shadow_skipped": skipped,
         "seconds": timing["seconds"],
@@ -219,6 +223,8 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--shadow", default=None, help="comma-separated signals scored in shadow, or 'all'")
     p.add_argument("--mode", choices=MODES, default="budgeted")
     p.add_argument("--budget", type=int, default=4, help="operator steps per assistance event (budgeted)")
+    p.add_argument("--cooldown", type=int, default=0, help="policy steps after a hand-back without a new request")
+    p.add_argument("--watchdog", type=float, default=None, help="also ask once at this fraction of the horizon")
     p.add_argument("--episodes", type=int, default=10)
     p.add_argument("--seed", type=int, default=1000)
     p.add_argument("--envs", type=int, default=4)

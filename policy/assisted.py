@@ -11,7 +11,9 @@ takeovers.
 
 Modes, as in the paper: ``budgeted`` gives the operator ``budget`` steps per assistance event;
 ``continuous`` keeps the operator in control until the driver no longer wants help (for
-``thrifty`` this is its switch-back rule; for the others the score back under the threshold).
+``thrifty`` this is its switch-back rule; for the others the score back under the threshold): the
+controller's ``continuous`` with ``return_after = 1``, since the simulated operator never hands back
+on its own.
 On hand-back the policy restarts from the current pose with a fresh observation history.
 """
 
@@ -39,12 +41,16 @@ MODES = HAND_BACK
 class AssistConfig:
     mode: str = "budgeted"
     budget: int = 4  # operator steps per assistance event (budgeted mode)
+    cooldown: int = 0  # policy steps after a hand-back on which the robot does not ask again
+    watchdog: float | None = None  # ask once at this fraction of the horizon without success
     n_envs: int = 4
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if not (isinstance(self.cooldown, int) and self.cooldown >= 0):
+            raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
         for name in ("budget", "n_envs"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
@@ -117,7 +123,14 @@ def run_assisted(
         signals,
         driver.name,
         make_task(task_name).action_space,
-        ControllerConfig(hand_back=cfg.mode, budget=cfg.budget, seed=cfg.seed),
+        ControllerConfig(
+            hand_back=cfg.mode,
+            budget=cfg.budget,
+            return_after=1 if cfg.mode == "continuous" else None,
+            cooldown=cfg.cooldown,
+            watchdog=cfg.watchdog,
+            seed=cfg.seed,
+        ),
     )
     episodes = [
         AssistedEpisode(task_name, s, driver.name, scores={k: [] for k in signals}, wants={k: [] for k in signals})

@@ -23,9 +23,16 @@ whether the robot asked for help or got control back. A robot under teleop that 
 step holds the last target; waiting robots hold without being scored.
 
 Hand-back: ``budgeted`` returns control after ``budget`` operator steps (or sooner with
-``return_after``); ``continuous`` after ``return_after`` (default 1) consecutive operator steps on
-which the asking signal no longer wants help (ThriftyDAgger's switch-back rule, or the score back
-under its threshold).
+``return_after``); ``continuous`` keeps the operator in control until they hand back (``release``),
+or, with ``return_after``, after that many consecutive operator steps on which the asking signal no
+longer wants help (ThriftyDAgger's switch-back rule, or the score back under its threshold: the
+paper's continuous mode is ``return_after = 1``). After a hand-back the robot does not ask again for
+``cooldown`` policy steps. The ``watchdog`` makes a robot ask once per episode when it has used that
+fraction of its horizon without success, whatever its signal says.
+
+Episodes: waiting for help holds the robot without using up the horizon (hold steps do not count,
+``Task.step``); operator steps count, as in the paper; a timeout never ends an episode under an
+operator's hands (``ends_episode``).
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ from sim.spaces import ACTION_DIM, ActionSpace, TeleopCommand, TeleopTarget
 from storage import keys
 
 HAND_BACK = ("budgeted", "continuous")
+WATCHDOG = "watchdog"  # RobotStep.asked_by when the robot asked because its episode ran long
 
 
 class Mode(StrEnum):
@@ -57,14 +65,20 @@ class Mode(StrEnum):
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    """hand_back: ``budgeted`` (``budget`` operator steps per assistance event) or ``continuous``;
-    return_after: hand back after this many consecutive operator steps on which the asking signal no
-    longer wants help (continuous: default 1; budgeted: None, only the budget); assistance: False
-    scores every signal but never asks (shadow runs); seed: the sampling noise's seed."""
+    """hand_back: ``budgeted`` (``budget`` operator steps per assistance event) or ``continuous`` (until
+    the operator hands back); return_after: also hand back after this many consecutive operator steps
+    on which the asking signal no longer wants help (None: never automatically); cooldown: after a
+    hand-back, this many of the policy's steps on which the robot does not ask again (0: it may ask at
+    once), so that a score that keeps re-triggering cannot flood the queue; watchdog: a robot that has
+    used this fraction of its episode's horizon without success asks for help once, whatever its
+    signal says (None: only the signal asks); assistance: False scores every signal but never asks
+    (shadow runs); seed: the sampling noise's seed."""
 
     hand_back: Literal["budgeted", "continuous"] = "budgeted"
     budget: int = 4
     return_after: int | None = None
+    cooldown: int = 0
+    watchdog: float | None = None
     assistance: bool = True
     seed: int = 0
 
@@ -75,13 +89,15 @@ class ControllerConfig:
             raise ValueError(f"budget must be an integer >= 1, got {self.budget!r}")
         if self.return_after is not None and not (isinstance(self.return_after, int) and self.return_after >= 1):
             raise ValueError(f"return_after must be None or an integer >= 1, got {self.return_after!r}")
+        if not (isinstance(self.cooldown, int) and not isinstance(self.cooldown, bool) and self.cooldown >= 0):
+            raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
+        if self.watchdog is not None and not (isinstance(self.watchdog, int | float) and 0 < self.watchdog <= 1):
+            raise ValueError(f"watchdog must be None or a fraction of the horizon in (0, 1], got {self.watchdog!r}")
 
     @property
     def calm_steps(self) -> int | None:
-        """Consecutive no-help operator steps that return control (None: only the budget does)."""
-        if self.return_after is not None:
-            return self.return_after
-        return 1 if self.hand_back == "continuous" else None
+        """Consecutive no-help operator steps that return control (None: only the budget or the operator)."""
+        return self.return_after
 
 
 @dataclass
@@ -89,11 +105,11 @@ class RobotStep:
     """What the controller decided for one robot at one step.
 
     action: (10,) raw absolute action to send; source: ``keys.SOURCE_*``; asked: the robot asked for
-    help at this step (it now waits and holds); returned: control went back to the policy after this
-    step; scores / wants: every signal's score and decision (empty when the robot was not scored:
-    waiting, or under teleop without a command); uncertainty: the denoising field when scored; obs:
-    (H, obs_dim) the history the policy saw; current: (10,) the probe centre's raw action; command /
-    target: the operator command applied and what it became.
+    help at this step (it now waits and holds), asked_by: what made it ask; returned: control went back
+    to the policy after this step; scores / wants: every signal's score and decision (empty when the
+    robot was not scored: waiting, or under teleop without a command); uncertainty: the denoising
+    field when scored; obs: (H, obs_dim) the history the policy saw; current: (10,) the probe centre's
+    raw action; command / target: the operator command applied and what it became.
     """
 
     robot_id: int
@@ -101,6 +117,7 @@ class RobotStep:
     source: str
     mode: Mode  # the mode after this step
     asked: bool = False
+    asked_by: str | None = None  # the asking signal's name, or WATCHDOG
     returned: bool = False
     scores: dict[str, float] = field(default_factory=dict)
     wants: dict[str, bool] = field(default_factory=dict)
@@ -124,9 +141,18 @@ class _Robot:
     hold: np.ndarray | None = None
     teleop_left: int | None = None
     calm: int = 0
+    cooldown: int = 0  # policy steps left on which the robot does not ask (after a hand-back)
+    watched: bool = False  # the watchdog asked in this episode
 
 
 ActionSink = Callable[[int, np.ndarray, str], None]
+
+
+def ends_episode(frame: RobotFrame, mode: Mode) -> bool:
+    """Whether ``frame`` ends its robot's episode: at success, or at the horizon (holds do not count,
+    ``Task.step``), but never under an operator's hands: a timeout during a takeover waits for the
+    hand-back (or, in the fleet, the lease's end)."""
+    return frame.done and (frame.success or mode != Mode.TELEOP)
 
 
 class Controller:
@@ -193,9 +219,11 @@ class Controller:
             r.queue.clear()
 
     def release(self, robot_id: int) -> None:
-        """Control goes back to the policy, which restarts from the next frame with a fresh history."""
+        """Control goes back to the policy, which restarts from the next frame with a fresh history and
+        does not ask again for ``config.cooldown`` steps."""
         r = self._robot(robot_id)
         r.mode, r.hold, r.teleop_left, r.calm = Mode.AUTONOMOUS, None, None, 0
+        r.cooldown = self.config.cooldown
         r.history.clear()
         r.queue.clear()
 
@@ -254,6 +282,23 @@ class Controller:
             self._score_and_decide(scored, frames, out, send)
         return {rid: out[rid] for rid in frames}
 
+    def _asks(self, r: _Robot, frame: RobotFrame, signal_wants: bool) -> str | None:
+        """Who makes an autonomous robot ask now: its signal, or the watchdog (once per episode, when
+        the robot has used ``watchdog`` of its horizon); None while a cooldown runs, or in shadow runs."""
+        if not self.config.assistance or r.cooldown > 0:
+            return None
+        if signal_wants:
+            return self.asking
+        late = (
+            self.config.watchdog is not None
+            and frame.horizon > 0
+            and frame.clock >= self.config.watchdog * frame.horizon
+        )
+        if late and not r.watched and not frame.success:
+            r.watched = True
+            return WATCHDOG
+        return None
+
     def _score_and_decide(
         self, ids: list[int], frames: Mapping[int, RobotFrame], out: dict[int, RobotStep], send: ActionSink | None
     ) -> None:
@@ -310,10 +355,11 @@ class Controller:
                 if done:
                     self.release(rid)
                     step.returned = True
-            elif asking is not None and asking[j]:
+            elif (by := self._asks(r, frame, asking is not None and bool(asking[j]))) is not None:
                 self.ask(rid, frame.hold)
-                step = RobotStep(rid, r.hold.copy(), keys.SOURCE_HOLD, r.mode, asked=True)
+                step = RobotStep(rid, r.hold.copy(), keys.SOURCE_HOLD, r.mode, asked=True, asked_by=by)
             else:
+                r.cooldown = max(0, r.cooldown - 1)
                 step = RobotStep(rid, r.queue.popleft(), keys.SOURCE_POLICY, r.mode)
             step.mode = r.mode
             step.obs, step.current = obs[j].numpy(), current[j].numpy()

@@ -14,11 +14,14 @@ from typing import Protocol
 
 from tqdm import tqdm
 
-from policy.controller import Controller, Mode, RobotStep
+from policy.controller import Controller, Mode, RobotStep, ends_episode
 from sim.env import StepResult, Task
 from sim.frame import RobotFrame
 from sim.registry import make_task
 from sim.spaces import TeleopCommand
+from storage import keys
+
+OVERTIME = 2  # an episode's hard stop, in horizons of control steps (holds and overtime under teleop)
 
 
 class SimulatedOperator(Protocol):
@@ -51,7 +54,9 @@ def run_lockstep(
     progress: bool = True,
     desc: str = "",
 ) -> list[Outcome]:
-    """One episode per seed; an episode ends at success or at the task's horizon."""
+    """One episode per seed; an episode ends as the fleet's do (``ends_episode``): at success or at the
+    task's horizon (hold steps do not count), a timeout waiting for the operator's hand-back, and at the
+    latest after ``OVERTIME`` times the horizon in control steps."""
     if n_envs < 1:
         raise ValueError(f"n_envs must be >= 1, got {n_envs}")
     tasks = [make_task(task_name) for _ in range(min(n_envs, len(seeds)))]
@@ -86,15 +91,16 @@ def run_lockstep(
                     task = wave[rid]
                     if on_step is not None:
                         on_step(rid, task, step)
-                    result: StepResult = task.step(step.action)
+                    result: StepResult = task.step(step.action, hold=step.source == keys.SOURCE_HOLD)
                     out = outcomes[rid]
                     out.steps = result.t
-                    if result.done:
+                    frame = RobotFrame.from_task(task, result)
+                    if ends_episode(frame, controller.mode(rid)) or result.t >= OVERTIME * task.horizon:
                         out.success, out.info = bool(result.success), task.episode_info()
                         controller.remove(rid)
                         bar.update(1)
                     else:
-                        frames[rid] = RobotFrame.from_task(task, result)
+                        frames[rid] = frame
     finally:
         bar.close()
         for t in tasks:

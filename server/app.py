@@ -1,31 +1,54 @@
 """``create_app(settings)``: the FastAPI service. Nothing is created at import time.
 
-The lifespan applies migrations, recovers takeover segments left open by a crash, builds the
+The lifespan applies migrations, recovers the segments and episodes a crash left open, builds the
 fleet and starts its control loop; on shutdown (SIGTERM included, through uvicorn) it finishes
 the current tick, closes open segments and stops the workers.
+
+Operations: ``/docs`` (Swagger UI) and ``/redoc`` are served with their assets from the installed
+``fastapi-offline`` package (no CDN), ``/`` redirects to ``home_path()``, the OpenAPI document carries the
+teleop WebSocket's message schemas (``server.api.ws_messages``), one ``ready: ...`` line is logged when
+``/readyz`` turns ready, and the access log keeps successful polling GETs at debug level.
 """
 
 from __future__ import annotations
 
+import asyncio
+import importlib.resources
 import logging
 import re
 from contextlib import asynccontextmanager
-from datetime import UTC, datetime
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
-from sqlalchemy import select
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
+from fastapi.staticfiles import StaticFiles
 
-from server.api import assistance, records, robots, system
-from server.db import SegmentRecord, make_engine, migrate, session_factory
+from server.api import assistance, records, robots, system, ws_messages
+from server.api.schemas import ErrorOut, FieldError
+from server.auth import TokenCache
+from server.db import make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.fleet import Fleet
+from server.recording import recover
 from server.settings import Settings
-from storage.segments import SegmentReadError, read_segment
 
 log = logging.getLogger("hitl.server")
 API_PREFIX = "/api/v1"
+DOCS_PATH = "/docs"
+REDOC_PATH = "/redoc"
+DOCS_ASSETS = "/docs/assets"  # Swagger UI's and ReDoc's files, from the fastapi-offline package
+# The operator console's path once it exists: "/" and the ready line then point to it instead of the docs.
+CONSOLE_PATH: str | None = None
+DESCRIPTION = "Robots ask for help when their denoising uncertainty is high; operators take over."
+
+# What clients poll: successful GETs of these go to the access log at debug level, the rest at info.
+POLLED = re.compile(rf"^(/healthz|/readyz|/metrics|{API_PREFIX}/(robots(/\d+(/view)?)?|assistance|metrics/fleet))/?$")
+
+
+def home_path() -> str:
+    """Where ``/`` sends a browser: the console once it exists (``CONSOLE_PATH``), the API docs until then."""
+    return CONSOLE_PATH or DOCS_PATH
 
 
 class RedactTokens(logging.Filter):
@@ -38,6 +61,66 @@ class RedactTokens(logging.Filter):
             record.args = tuple(self._pattern.sub(r"\1***", a) if isinstance(a, str) else a for a in record.args)
         record.msg = self._pattern.sub(r"\1***", str(record.msg))
         return True
+
+
+class QuietPolling(logging.Filter):
+    """uvicorn's access-log line for a successful (< 400) GET of a polled endpoint (``POLLED``) becomes a
+    debug record, dropped unless ``uvicorn.access`` logs at debug (``hitl serve --log-level debug``).
+    Mutations and errors stay at info."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        args = record.args
+        if not (isinstance(args, tuple) and len(args) == 5):  # client, method, path?query, version, status
+            return True
+        _, method, path, _, status = args
+        if method not in ("GET", "HEAD") or not isinstance(status, int) or status >= 400:
+            return True
+        if not POLLED.match(str(path).split("?", 1)[0]):
+            return True
+        record.levelno, record.levelname = logging.DEBUG, logging.getLevelName(logging.DEBUG)
+        return logging.getLogger(record.name).isEnabledFor(logging.DEBUG)
+
+
+def install_log_filters() -> None:
+    """Token redaction on uvicorn's access log and on its error log (which logs each WebSocket handshake
+    with its query string), and ``QuietPolling`` on the access log. Idempotent."""
+    for name, kinds in (("uvicorn.access", (RedactTokens, QuietPolling)), ("uvicorn.error", (RedactTokens,))):
+        logger = logging.getLogger(name)
+        for kind in kinds:
+            if not any(isinstance(f, kind) for f in logger.filters):
+                logger.addFilter(kind())
+
+
+def fleet_ready(fleet: Fleet | None) -> bool:
+    """What ``/readyz`` answers: the control loop has ticked (some robot's first frame arrived and was stepped)."""
+    return fleet is not None and fleet.ticks > 0
+
+
+def base_url(app: FastAPI) -> str:
+    """The service's URL: the address uvicorn bound when ``hitl serve`` put its server in ``app.state.server``,
+    else the settings'. A wildcard host (0.0.0.0, ::) is shown as this machine's loopback address."""
+    settings = app.state.settings
+    host, port = settings.host, settings.port
+    server = getattr(app.state, "server", None)
+    sockets = [sock for srv in getattr(server, "servers", None) or [] for sock in srv.sockets]
+    if sockets:
+        host, port = sockets[0].getsockname()[:2]
+    host = {"0.0.0.0": "127.0.0.1", "::": "::1", "": "127.0.0.1"}.get(host, host)
+    return f"http://{f'[{host}]' if ':' in host else host}:{port}"
+
+
+def ready_line(app: FastAPI) -> str:
+    base, n = base_url(app), len(app.state.fleet.robots)
+    console = f"console at {base}{CONSOLE_PATH}" if CONSOLE_PATH else "console not yet available"
+    return f"ready: {n} robot{'s' if n != 1 else ''}, {console}, docs at {base}{DOCS_PATH}"
+
+
+async def announce_ready(app: FastAPI, poll_s: float = 0.05) -> None:
+    """Logs ``ready_line`` once, when ``/readyz`` turns ready (and, under ``hitl serve``, uvicorn listens)."""
+    server = getattr(app.state, "server", None)
+    while not (fleet_ready(app.state.fleet) and (server is None or server.started)):
+        await asyncio.sleep(poll_s)
+    log.info("%s", ready_line(app))
 
 
 class BodyLimit:
@@ -83,62 +166,107 @@ class BodyLimit:
         await self.app(scope, replay, send)
 
 
-def recover_segments(sessions) -> int:
-    """Marks segments left open by a crash ``recovered``, with the steps their files still hold."""
-    n = 0
-    with sessions() as s:
-        for row in s.scalars(select(SegmentRecord).where(SegmentRecord.status == "open")):
-            try:
-                seg = read_segment(row.path, recover=True)
-                row.steps = len(seg.steps)
-            except SegmentReadError as exc:
-                log.warning("segment %d: %s", row.id, exc)
-                row.steps = 0
-            row.status, row.ended_at = "recovered", datetime.now(UTC)
-            n += 1
-        s.commit()
-    return n
-
-
 def create_app(settings: Settings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        install_log_filters()
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         url = settings.db_url
         migrate(url)
         engine = make_engine(url)
         sessions = session_factory(engine)
-        recovered = recover_segments(sessions)
-        if recovered:
-            log.info("recovered %d takeover segment(s) left open by a crash", recovered)
+        found = recover(sessions, settings.data_dir)  # before any robot runs
+        if found.segments or found.episodes:
+            log.info(
+                "after a crash: %d takeover segment(s) rewritten as complete MCAP files, %d episode(s) closed as "
+                "interrupted (%d file(s) unreadable)",
+                found.segments,
+                found.episodes,
+                found.unreadable,
+            )
         fleet = Fleet(settings, sessions)
         app.state.settings, app.state.sessions, app.state.fleet = settings, sessions, fleet
+        app.state.tokens = TokenCache(sessions)
         fleet.start()
+        log.info("fleet of %d robot(s) started; ready once its control loop has ticked", len(fleet.robots))
+        announcer = asyncio.create_task(announce_ready(app))
         try:
             yield
         finally:
+            announcer.cancel()
+            await asyncio.gather(announcer, return_exceptions=True)
             fleet.stop()
             engine.dispose()
 
     app = FastAPI(
         title="hitl fleet service",
         version="0.1.0",
-        description="Robots ask for help when their denoising uncertainty is high; operators take over.",
+        description=f"{DESCRIPTION}\n\n{ws_messages.PROTOCOL_MARKDOWN}",
         lifespan=lifespan,
+        docs_url=None,  # served below, with local assets
+        redoc_url=None,
     )
 
+    # Every error answer has the documented ErrorOut shape (server.api.responses): these two, FastAPI's
+    # HTTPException handler ({"detail": message}) and BodyLimit's 413 alike.
     @app.exception_handler(ServiceError)
     async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
-        return JSONResponse({"detail": exc.message}, status_code=exc.status)
+        return JSONResponse(ErrorOut(detail=exc.message).model_dump(), status_code=exc.status)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
         # the offending values are not echoed back: NaN and infinities are not JSON
-        errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
-        return JSONResponse({"detail": errors}, status_code=422)
+        errors = [FieldError(loc=list(e["loc"]), msg=e["msg"], type=e["type"]) for e in exc.errors()]
+        return JSONResponse(ErrorOut(detail=errors).model_dump(), status_code=422)
 
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.include_router(system.router)
     for router in (robots.router, assistance.router, records.router, system.api):
         app.include_router(router, prefix=API_PREFIX)
+    _add_docs(app)
     return app
+
+
+def _add_docs(app: FastAPI) -> None:
+    """``/`` (a redirect to ``home_path()``), ``/docs`` and ``/redoc`` with their assets served from the
+    installed fastapi-offline package (FastAPI's documented self-hosting: docs_url=None, StaticFiles and
+    ``get_swagger_ui_html``), and an OpenAPI document with the teleop WebSocket's message schemas."""
+    assets = importlib.resources.files("fastapi_offline") / "static"
+    app.mount(DOCS_ASSETS, StaticFiles(directory=str(assets)), name="docs-assets")
+
+    def root(request: Request) -> str:
+        return request.scope.get("root_path", "").rstrip("/")
+
+    @app.get("/", include_in_schema=False)
+    async def home(request: Request) -> RedirectResponse:
+        return RedirectResponse(root(request) + home_path())
+
+    @app.get(DOCS_PATH, include_in_schema=False)
+    async def swagger_ui(request: Request) -> HTMLResponse:
+        r = root(request)
+        return get_swagger_ui_html(
+            openapi_url=r + app.openapi_url,
+            title=f"{app.title}: API docs",
+            swagger_js_url=f"{r}{DOCS_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{r}{DOCS_ASSETS}/swagger-ui.css",
+            swagger_favicon_url=f"{r}{DOCS_ASSETS}/favicon.png",
+            swagger_ui_parameters={"validatorUrl": None},  # Swagger UI's default sends the spec to an online validator
+        )
+
+    @app.get(REDOC_PATH, include_in_schema=False)
+    async def redoc(request: Request) -> HTMLResponse:
+        r = root(request)
+        return get_redoc_html(
+            openapi_url=r + app.openapi_url,
+            title=f"{app.title}: API reference",
+            redoc_js_url=f"{r}{DOCS_ASSETS}/redoc.standalone.js",
+            redoc_favicon_url=f"{r}{DOCS_ASSETS}/favicon.png",
+            with_google_fonts=False,
+        )
+
+    def openapi() -> dict:
+        if not app.openapi_schema:
+            ws_messages.add_to_openapi(FastAPI.openapi(app))  # FastAPI caches the document it builds
+        return app.openapi_schema
+
+    app.openapi = openapi

@@ -65,7 +65,10 @@ class AssistanceQueue:
         with self._lock:
             req = self._by_robot.get(robot_id)
             if req is None:
-                raise ServiceError(404, f"robot {robot_id} has no open assistance request")
+                raise ServiceError(
+                    409,
+                    f"robot {robot_id} has no open assistance request: it is neither waiting for help nor under teleop",
+                )
             if req.holder is not None and req.holder != operator and req.lease_until and req.lease_until > now:
                 raise ServiceError(409, f"robot {robot_id} is already controlled by another operator")
             if req.holder is None:
@@ -86,7 +89,9 @@ class AssistanceQueue:
     def _holder_check(self, robot_id: int, operator: str) -> AssistanceRequest:
         req = self._by_robot.get(robot_id)
         if req is None:
-            raise ServiceError(404, f"robot {robot_id} has no open assistance request")
+            raise ServiceError(
+                409, f"robot {robot_id} has no open assistance request: it is neither waiting for help nor under teleop"
+            )
         if req.holder != operator:
             raise ServiceError(409, f"robot {robot_id} is not controlled by you: claim it first")
         return req

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import hashlib
 import secrets
+import threading
+import time
 from dataclasses import dataclass
 
 from sqlalchemy import select
@@ -64,3 +66,29 @@ def authenticate(sessions: sessionmaker, token: str | None) -> Principal | None:
     with sessions() as s:
         row = s.scalar(select(ApiToken).where(ApiToken.token_hash == hash_token(token), ApiToken.revoked.is_(False)))
         return Principal(row.name, row.role) if row else None
+
+
+class TokenCache:
+    """``authenticate`` with answers kept for ``ttl`` seconds, so that polling clients do not cost a
+    database query per request. A revocation (``hitl token revoke``, another process) takes effect
+    within ``ttl``. Unknown tokens are cached too, so a flood of bad tokens does not reach the database."""
+
+    def __init__(self, sessions: sessionmaker, ttl: float = 5.0, max_entries: int = 10_000) -> None:
+        self.sessions, self.ttl, self.max_entries = sessions, ttl, max_entries
+        self._seen: dict[str, tuple[float, Principal | None]] = {}
+        self._lock = threading.Lock()
+
+    def authenticate(self, token: str | None) -> Principal | None:
+        if not token:
+            return None
+        key, now = hash_token(token), time.monotonic()
+        with self._lock:
+            hit = self._seen.get(key)
+        if hit is not None and now - hit[0] < self.ttl:
+            return hit[1]
+        principal = authenticate(self.sessions, token)
+        with self._lock:
+            if len(self._seen) >= self.max_entries:
+                self._seen.clear()
+            self._seen[key] = (now, principal)
+        return principal

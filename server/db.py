@@ -71,7 +71,7 @@ class EpisodeRecord(Base):
     policy_id: Mapped[int | None] = mapped_column(ForeignKey("policy_versions.id"), nullable=True)
     outcome: Mapped[str | None] = mapped_column(
         String(16), nullable=True
-    )  # success | timeout | faulted | reset | stopped
+    )  # success | timeout | faulted | reset | stopped | interrupted (left open by a crash)
     steps: Mapped[int] = mapped_column(Integer, default=0)
     assisted_steps: Mapped[int] = mapped_column(Integer, default=0)
     assistance_events: Mapped[int] = mapped_column(Integer, default=0)
@@ -80,8 +80,19 @@ class EpisodeRecord(Base):
     path: Mapped[str | None] = mapped_column(String(1024), nullable=True)
 
 
+SEGMENT_ENDS = (
+    "hand-back",
+    "lease-expired",
+    "episode-ended",
+    "worker-fault",
+    "reset",
+    "service-stopped",
+    "crash-recovered",
+)
+
+
 class SegmentRecord(Base):
-    """One takeover: status open -> closed, or recovered after a crash."""
+    """One takeover: status open -> closed, or recovered after a crash; ended_by: one of SEGMENT_ENDS."""
 
     __tablename__ = "segments"
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
@@ -92,8 +103,9 @@ class SegmentRecord(Base):
     operator: Mapped[str] = mapped_column(String(128))
     reason: Mapped[str] = mapped_column(String(256))
     status: Mapped[str] = mapped_column(String(16), index=True, default="open")
+    ended_by: Mapped[str | None] = mapped_column(String(32), nullable=True)
     steps: Mapped[int] = mapped_column(Integer, default=0)
-    path: Mapped[str] = mapped_column(String(1024))
+    path: Mapped[str] = mapped_column(String(1024))  # relative to the service's data_dir
     meta: Mapped[dict] = mapped_column(JSON, default=dict)
     started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), nullable=True)

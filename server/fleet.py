@@ -18,6 +18,7 @@ episode finishes it on the version it started with.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -30,7 +31,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import sessionmaker
 
 from policy.checkpoint import CheckpointError, read_info
-from policy.controller import Mode, RobotStep
+from policy.controller import WATCHDOG, Mode, RobotStep, ends_episode
 from server.assistance import AssistanceQueue
 from server.commands import CommandMailbox
 from server.db import PolicyVersion
@@ -133,27 +134,30 @@ class Fleet:
             self._fault(robot, str(exc))
 
     def _end_episode(self, robot: Robot, frame: RobotFrame) -> None:
+        """The episode ended on its own: success, or the horizon (never under an operator's hands)."""
         outcome = "success" if frame.success else "timeout"
         self.recorder.close_episode_file(robot, frame.success, frame.t, outcome)
-        self.recorder.close_segment(robot, "closed")
+        if robot.segment is not None:  # a takeover that reached success (a timeout waits for the hand-back)
+            self._end_takeover(robot, "episode-ended")
         self.queue.close(robot.id)
         robot.mode = "done" if robot.mode != "paused" else "paused"
         robot.episodes_done += 1
         robot.successes += int(frame.success)
-        self.recorder.finish_episode(robot, outcome, frame.t)
+        self.recorder.finish_episode(robot, outcome, frame.clock)
         self._new_episode(robot)
 
-    def _interrupt(self, robot: Robot, outcome: str, reason: str) -> None:
-        """Ends the episode early (fault, reset, shutdown): files and rows closed, request dropped."""
-        self.recorder.close_segment(robot, "closed")
-        self.recorder.close_episode_file(robot, None, robot.steps, reason)
+    def _interrupt(self, robot: Robot, outcome: str, ended_by: str) -> None:
+        """Ends the episode early (fault, reset, shutdown): files and rows closed, request dropped.
+        ended_by: why, for a takeover in progress (``db.SEGMENT_ENDS``)."""
+        self.recorder.close_segment(robot, ended_by)
+        self.recorder.close_episode_file(robot, None, robot.steps, outcome)
         self.recorder.finish_episode(robot, outcome)
         self.queue.close(robot.id)
         robot.commands.clear()
 
     def _fault(self, robot: Robot, why: str) -> None:
         log.warning("robot %d faulted: %s", robot.id, why.splitlines()[-1] if why else why)
-        self._interrupt(robot, "faulted", "faulted")
+        self._interrupt(robot, "faulted", "worker-fault")
         robot.slot.controller.remove(robot.id)
         robot.mode, robot.fault, robot.fresh = "faulted", why, False
         if robot.worker is not None:
@@ -177,7 +181,7 @@ class Fleet:
             self._thread.join(timeout=30)
         with self.lock:
             for robot in self.robots.values():
-                self._interrupt(robot, "stopped", "service stopped")
+                self._interrupt(robot, "stopped", "service-stopped")
                 if robot.worker is not None:
                     robot.worker.close()
             for robot in self.robots.values():
@@ -228,7 +232,9 @@ class Fleet:
             return
         robot.frame = frame
         self.recorder.frame_arrived(robot, frame)
-        if frame.done and frame.t > 0:
+        controller = robot.slot.controller
+        mode = controller.mode(robot.id) if robot.id in controller else Mode.AUTONOMOUS
+        if frame.t > 0 and ends_episode(frame, mode):
             self._end_episode(robot, frame)
         else:
             robot.fresh = True
@@ -240,10 +246,11 @@ class Fleet:
                 self._add_busy(req.expired_holder, time.monotonic() - req.claimed_at)
             robot = self.robots.get(req.robot_id)
             if robot is not None and robot.mode == "teleop" and robot.frame is not None:
+                # (past the horizon, the next frame ends the episode: a timeout waited for this)
                 robot.slot.controller.ask(robot.id, robot.frame.hold)
                 robot.mode = "waiting"
                 robot.commands.clear()
-                self.recorder.close_segment(robot, "closed")
+                self.recorder.close_segment(robot, "lease-expired")
         for r in self.robots.values():
             if r.segment is not None:  # nothing older than a second is only in memory
                 r.segment.maybe_flush()
@@ -289,19 +296,24 @@ class Fleet:
         if step.asked:
             robot.events += 1
             asking = robot.slot.controller.asking
-            value, threshold = step.scores[asking], robot.slot.controller.signals[asking].threshold
-            self.queue.open(robot.id, value, threshold, f"{asking} score {value:.3g} over {threshold:.3g}")
+            if step.asked_by == WATCHDOG:
+                f = robot.frame
+                self.queue.open(robot.id, 1.0, 1.0, f"watchdog: {f.clock} of {f.horizon} steps without success")
+            else:
+                value, threshold = step.scores[asking], robot.slot.controller.signals[asking].threshold
+                self.queue.open(robot.id, value, threshold, f"{asking} score {value:.3g} over {threshold:.3g}")
         if step.returned:
             self._hand_back(robot)
 
     def _send(self, robot: Robot, action: np.ndarray, source: str) -> None:
         self.recorder.action_sent(robot, action, source)
+        hold = source == keys.SOURCE_HOLD  # holding for an operator does not use up the episode
         try:
-            robot.worker.request_step(action)
+            robot.worker.request_step(action, hold)
         except WorkerFault as exc:
             self._fault(robot, str(exc))
             return
-        robot.steps += 1
+        robot.steps += 0 if hold else 1
         self.env_steps += 1
         now = time.monotonic()
         if robot.last_sent is not None:
@@ -312,11 +324,9 @@ class Fleet:
         self.operator_busy[operator] = self.operator_busy.get(operator, 0.0) + seconds
 
     def _hand_back(self, robot: Robot) -> None:
-        """Control returns to the policy, which restarts from the next frame with a fresh history."""
-        self.recorder.close_segment(robot, "closed")
-        req = self.queue.close(robot.id)
-        if req is not None and req.holder and req.claimed_at is not None:
-            self._add_busy(req.holder, time.monotonic() - req.claimed_at)
+        """Control returns to the policy, which restarts from the next frame with a fresh history (an
+        episode past its horizon then ends at that frame: its timeout waited for the hand-back)."""
+        self._end_takeover(robot, "hand-back")
         if robot.id in robot.slot.controller:
             robot.slot.controller.release(robot.id)
         robot.commands.clear()
@@ -324,6 +334,13 @@ class Fleet:
             robot.paused_from = "autonomous"
         else:
             robot.mode = "autonomous"
+
+    def _end_takeover(self, robot: Robot, ended_by: str) -> None:
+        """Closes the takeover's segment and request, and books the operator's time."""
+        self.recorder.close_segment(robot, ended_by)
+        req = self.queue.close(robot.id)
+        if req is not None and req.holder and req.claimed_at is not None:
+            self._add_busy(req.holder, time.monotonic() - req.claimed_at)
 
     # -- what readers see -------------------------------------------------------------------------------------
     def view(self, robot_id: int) -> RobotView:
@@ -370,9 +387,9 @@ class Fleet:
             return req
 
     def heartbeat(self, robot_id: int, operator: str):
-        with self.lock:
-            self.robot(robot_id)
-            return self.queue.heartbeat(robot_id, operator)
+        """Renews the lease; the queue has its own lock, so this never waits for a tick in progress."""
+        self.robot(robot_id)
+        return self.queue.heartbeat(robot_id, operator)
 
     def release(self, robot_id: int, operator: str) -> None:
         with self.lock:
@@ -384,12 +401,16 @@ class Fleet:
     def command(self, robot_id: int, operator: str, command: TeleopCommand) -> int:
         """Accepts a command for the next tick without waiting for a tick in progress (no fleet lock).
         Commands arriving between ticks compose (``server.commands``): returns how many the next tick
-        applies; 429 when the composition would exceed the per-step limits."""
+        applies; 429 when the composition would exceed the per-step limits. An accepted command renews
+        the operator's lease, as a heartbeat does: an operator who is driving is there."""
         robot = self.robot(robot_id)
         if robot.mode != "teleop":
             raise ServiceError(409, f"robot {robot_id} is {robot.mode}, not under teleop")
         self.queue.check_holder(robot_id, operator)
-        return robot.commands.put(command)
+        pending = robot.commands.put(command)
+        with contextlib.suppress(ServiceError):  # control went back in between: the command is still counted
+            self.queue.heartbeat(robot_id, operator)
+        return pending
 
     def pause(self, robot_id: int) -> None:
         with self.lock:

@@ -20,6 +20,10 @@ log = logging.getLogger("hitl.operator_bot")
 LIMITS = TeleopLimits()
 
 
+class TakeoverOver(Exception):
+    """The takeover cannot go on: the service handed control back, the episode ended, or the robot is gone."""
+
+
 class ViewTask:
     """What the scripted experts read from a task, rebuilt from the operator view."""
 
@@ -27,11 +31,15 @@ class ViewTask:
         self.update(view)
 
     def update(self, view: dict) -> None:
+        """Raises TakeoverOver when the view has no scene to drive (no frame yet, or a new episode)."""
+        pose = view.get("pose")
+        if pose is None or view.get("mode") not in (None, "teleop"):
+            raise TakeoverOver(f"robot {view.get('robot_id')} is {view.get('mode')} with pose {pose}")
         self.name = view["task"]
-        pose = view["pose"]
         self._pos = np.asarray(pose["position"], dtype=np.float64)
         self._rot = Rotation.from_quat(pose["quaternion"]).as_matrix()
-        self._privileged = {k: np.asarray(v) if isinstance(v, list) else v for k, v in view["goal"].items()}
+        goal = view.get("goal") or {}
+        self._privileged = {k: np.asarray(v) if isinstance(v, list) else v for k, v in goal.items()}
         self._gripper = float(view["gripper"]) if view.get("gripper") is not None else 0.08
 
     def gripper_opening(self) -> float:
@@ -45,18 +53,25 @@ class ViewTask:
 
 
 class OperatorBot:
+    """Serves the assistance queue. Survives every state the API can return: a robot that is handed
+    back, reset, paused, faulted or whose episode ends mid-takeover ends that takeover; network errors
+    and server errors are logged and retried with backoff."""
+
     def __init__(self, url: str, token: str, heartbeat_s: float = 1.0, timeout: float = 10.0) -> None:
         self.api = url.rstrip("/") + "/api/v1"
         self.client = httpx.Client(headers={"Authorization": f"Bearer {token}"}, timeout=timeout)
         self.heartbeat_s = heartbeat_s
         self.takeovers = 0
         self.commands = 0
+        self.errors = 0  # network errors and unexpected answers, each logged
 
     def close(self) -> None:
         self.client.close()
 
     def _get(self, path: str):
         r = self.client.get(self.api + path)
+        if r.status_code in (404, 409):
+            raise TakeoverOver(f"GET {path}: {r.status_code} {r.text}")
         r.raise_for_status()
         return r.json()
 
@@ -69,12 +84,12 @@ class OperatorBot:
         if r.status_code in (404, 409):  # someone else was faster, or the request is gone
             return 0
         r.raise_for_status()
-        view = self._get(f"/robots/{robot_id}/view")
-        task = ViewTask(view)
-        expert = make_expert(task.name)
-        expert.resume(task, np.random.default_rng([seed, robot_id]))  # pick up where the scene stands
-        steps, last_beat = 0, time.monotonic()
+        steps = 0
         try:
+            task = ViewTask(self._get(f"/robots/{robot_id}/view"))
+            expert = make_expert(task.name)
+            expert.resume(task, np.random.default_rng([seed, robot_id]))  # pick up where the scene stands
+            last_beat = time.monotonic()
             while steps < max_steps:
                 detail = self._get(f"/robots/{robot_id}")
                 if detail["mode"] != "teleop":
@@ -87,8 +102,11 @@ class OperatorBot:
                     "gripper": float(cmd.gripper),
                 }
                 r = self.client.post(f"{self.api}/robots/{robot_id}/command", json=body)
-                if r.status_code == 409:  # lease lost or control handed back
+                if r.status_code in (404, 409):  # lease lost, control handed back, episode over
                     break
+                if r.status_code == 429:  # the next step is full: let a tick apply it
+                    time.sleep(0.02)
+                    continue
                 r.raise_for_status()
                 self.commands += 1
                 steps += 1
@@ -96,6 +114,11 @@ class OperatorBot:
                 if time.monotonic() - last_beat > self.heartbeat_s:
                     self.client.post(f"{self.api}/robots/{robot_id}/heartbeat")
                     last_beat = time.monotonic()
+            else:  # gave up: hand the robot back now rather than let the lease run out
+                log.info("robot %d: no success after %d steps, handing back", robot_id, steps)
+                self.client.post(f"{self.api}/robots/{robot_id}/release")
+        except TakeoverOver as why:
+            log.info("robot %d: takeover over (%s)", robot_id, why)
         finally:
             self.takeovers += 1
         return steps
@@ -104,16 +127,25 @@ class OperatorBot:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             d = self._get(f"/robots/{robot_id}")
-            if d["assisted_steps"] > before or d["mode"] != "teleop":
+            if d["assisted_steps"] != before or d["mode"] != "teleop":
                 return
             time.sleep(0.01)
 
     def run(self, max_takeovers: int | None = None, idle_sleep: float = 0.2, stop=None) -> None:
         """Serves the queue until ``max_takeovers`` or ``stop()`` returns True."""
+        backoff = idle_sleep
         while (max_takeovers is None or self.takeovers < max_takeovers) and not (stop and stop()):
-            req = self.next_request()
-            if req is None:
-                time.sleep(idle_sleep)
-                continue
-            steps = self.takeover(req["robot_id"], seed=self.takeovers)
-            log.info("robot %d: drove %d steps", req["robot_id"], steps)
+            try:
+                req = self.next_request()
+                if req is None:
+                    time.sleep(idle_sleep)
+                    continue
+                steps = self.takeover(req["robot_id"], seed=self.takeovers)
+                log.info("robot %d: drove %d steps", req["robot_id"], steps)
+                backoff = idle_sleep
+            except (httpx.HTTPError, TakeoverOver, KeyError, TypeError, ValueError) as exc:
+                # the service restarting, a server error, an answer of an unexpected shape: keep serving
+                self.errors += 1
+                log.warning("operator bot: %s: %s (retrying in %.1f s)", type(exc).__name__, exc, backoff)
+                time.sleep(backoff)
+                backoff = min(10.0, backoff * 2)

@@ -1,8 +1,14 @@
 """What the fleet writes: episode rows, takeover segments (MCAP + row) and, when asked, whole
-episodes as MCAP files. Paths are absolute, so recovery does not depend on the working directory."""
+episodes as MCAP files; and ``recover``, which puts right what a crash left open.
+
+File paths are stored relative to the service's ``data_dir`` and resolved against it at runtime
+(``resolve``), so the data folder can move and recovery does not depend on the working directory.
+"""
 
 from __future__ import annotations
 
+import logging
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -15,10 +21,21 @@ from policy.controller import RobotStep
 from server.db import EpisodeRecord, SegmentRecord
 from server.robot import Robot
 from sim.frame import RobotFrame
-from storage.episodes import EpisodeWriter
-from storage.segments import SegmentWriter
+from storage.episodes import EpisodeReadError, EpisodeWriter, recover_episode
+from storage.segments import SegmentReadError, SegmentWriter, recover_segment
 
+log = logging.getLogger("hitl.recording")
 FINISHED = ("success", "timeout")  # episodes that ended on their own
+
+
+def resolve(data_dir: Path, stored: str) -> Path:
+    """A file path as stored in the database: relative to ``data_dir`` (absolute paths, as older
+    versions stored them, are kept as they are)."""
+    return Path(data_dir).resolve() / stored
+
+
+def _stored(data_dir: Path, path: Path) -> str:
+    return str(Path(path).relative_to(Path(data_dir).resolve()))
 
 
 class Recorder:
@@ -77,7 +94,7 @@ class Recorder:
             with self.sessions() as s:
                 row = s.get(EpisodeRecord, robot.episode_id)
                 if row is not None:
-                    row.path = str(path)
+                    row.path = _stored(self.data_dir, path)
                     s.commit()
 
     def action_sent(self, robot: Robot, action: np.ndarray, source: str) -> None:
@@ -127,7 +144,7 @@ class Recorder:
                 operator=operator,
                 reason=reason,
                 status="open",
-                path=str(path),
+                path=_stored(self.data_dir, path),
                 meta=meta,
             )
             s.add(row)
@@ -163,14 +180,50 @@ class Recorder:
             field=field,
         )
 
-    def close_segment(self, robot: Robot, status: str) -> None:
+    def close_segment(self, robot: Robot, ended_by: str) -> None:
+        """Ends the robot's takeover segment, if one is open; ended_by: one of ``db.SEGMENT_ENDS``."""
         if robot.segment is None:
             return
         writer, robot.segment = robot.segment, None
-        writer.close(status)
+        writer.close("closed", ended_by)
         with self.sessions() as s:
             row = s.get(SegmentRecord, robot.segment_id)
             if row is not None:
-                row.status, row.steps, row.ended_at = status, writer.steps, datetime.now(UTC)
+                row.status, row.ended_by, row.steps, row.ended_at = "closed", ended_by, writer.steps, datetime.now(UTC)
                 s.commit()
         robot.segment_id = None
+
+
+@dataclass
+class Recovered:
+    segments: int = 0
+    episodes: int = 0
+    unreadable: int = 0  # files that held nothing readable (their rows are closed all the same)
+
+
+def recover(sessions: sessionmaker, data_dir: Path) -> Recovered:
+    """At start, before any robot runs: every segment left open by a crash is rewritten as a complete,
+    indexed MCAP ending in ``recovered`` / ``crash-recovered`` and its row marked ``recovered``; every
+    episode left open is closed as ``interrupted`` (its file, if recorded, rewritten the same way)."""
+    out = Recovered()
+    now = datetime.now(UTC)
+    with sessions() as s:
+        for row in s.scalars(select(SegmentRecord).where(SegmentRecord.status == "open")):
+            try:
+                row.steps = recover_segment(resolve(data_dir, row.path))
+            except (SegmentReadError, OSError) as exc:
+                log.warning("segment %d: %s", row.id, exc)
+                row.steps, out.unreadable = 0, out.unreadable + 1
+            row.status, row.ended_by, row.ended_at = "recovered", "crash-recovered", now
+            out.segments += 1
+        for ep in s.scalars(select(EpisodeRecord).where(EpisodeRecord.outcome.is_(None))):
+            if ep.path is not None:
+                try:
+                    ep.steps = recover_episode(resolve(data_dir, ep.path))
+                except (EpisodeReadError, OSError) as exc:
+                    log.warning("episode %d: %s", ep.id, exc)
+                    out.unreadable += 1
+            ep.outcome, ep.ended_at = "interrupted", now
+            out.episodes += 1
+        s.commit()
+    return out

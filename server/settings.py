@@ -58,7 +58,19 @@ class Settings(BaseSettings):
     shadow_signals: list[str] = Field(default_factory=list, description="signals scored alongside, recorded")
     trigger_mode: Literal["budgeted", "continuous"] = "budgeted"
     budget_steps: int = Field(4, ge=1, le=1000)
-    auto_return_steps: int | None = Field(None, ge=1, description="hand back after K steps of U under threshold")
+    auto_return_steps: int | None = Field(
+        None, ge=1, description="also hand back after K operator steps on which the signal no longer wants help"
+    )
+    cooldown_steps: int = Field(
+        10, ge=0, le=100_000, description="after a hand-back, policy steps on which the robot does not ask again"
+    )
+    watchdog: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="a robot that has used this fraction of its episode's horizon without success asks for help "
+        "once, whatever its signal says (unset: only the signal asks)",
+    )
     lease_seconds: float = Field(10.0, gt=0, le=3600)
     record_episodes: bool = False
     max_body_bytes: int = Field(64 * 1024, ge=1024)

@@ -41,6 +41,8 @@ def controller_config(settings: Settings) -> ControllerConfig:
         hand_back=settings.trigger_mode,
         budget=settings.budget_steps,
         return_after=settings.auto_return_steps,
+        cooldown=settings.cooldown_steps,
+        watchdog=settings.watchdog,
         assistance=settings.assistance,
         seed=settings.seed,
     )

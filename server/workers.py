@@ -53,7 +53,9 @@ class RobotWorker(ABC):
     def request_reset(self, seed: int) -> None: ...
 
     @abstractmethod
-    def request_step(self, action: np.ndarray) -> None: ...
+    def request_step(self, action: np.ndarray, hold: bool = False) -> None:
+        """hold: the action only holds the pose (a robot waiting for help); it does not count against the
+        episode's horizon (``Task.step``)."""
 
     @abstractmethod
     def poll(self) -> RobotFrame | None:
@@ -97,7 +99,7 @@ def wait_any(workers: Sequence[RobotWorker], timeout: float) -> None:
 
 # -- a process per robot ---------------------------------------------------------------------------------
 def _serve(conn: Connection, task_name: str) -> None:
-    """Process entry point: answers ``("reset", seed)``, ``("step", action)``, ``("close", None)``;
+    """Process entry point: answers ``("reset", seed)``, ``("step", (action, hold))``, ``("close", None)``;
     exits on ``close`` or when the server's end of the pipe goes away."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from sim.registry import make_task
@@ -114,7 +116,8 @@ def _serve(conn: Connection, task_name: str) -> None:
                     task.reset(int(arg))
                     conn.send(("ok", RobotFrame.from_task(task)))
                 elif cmd == "step":
-                    conn.send(("ok", RobotFrame.from_task(task, task.step(np.asarray(arg, dtype=np.float64)))))
+                    action, hold = arg
+                    conn.send(("ok", RobotFrame.from_task(task, task.step(np.asarray(action, np.float64), hold))))
                 elif cmd == "close":
                     return
                 else:
@@ -155,8 +158,8 @@ class ProcessWorker(RobotWorker):
     def request_reset(self, seed: int) -> None:
         self._send(("reset", int(seed)))
 
-    def request_step(self, action: np.ndarray) -> None:
-        self._send(("step", np.asarray(action, dtype=np.float64)))
+    def request_step(self, action: np.ndarray, hold: bool = False) -> None:
+        self._send(("step", (np.asarray(action, dtype=np.float64), bool(hold))))
 
     def poll(self) -> RobotFrame | None:
         if not self._process.is_alive():
@@ -247,8 +250,8 @@ class InProcessWorker(RobotWorker):
     def request_reset(self, seed: int) -> None:
         self._do(lambda: (self.task.reset(int(seed)), RobotFrame.from_task(self.task))[1])
 
-    def request_step(self, action: np.ndarray) -> None:
-        self._do(lambda: RobotFrame.from_task(self.task, self.task.step(np.asarray(action, dtype=np.float64))))
+    def request_step(self, action: np.ndarray, hold: bool = False) -> None:
+        self._do(lambda: RobotFrame.from_task(self.task, self.task.step(np.asarray(action, np.float64), hold)))
 
     def poll(self) -> RobotFrame | None:
         if not self._alive:

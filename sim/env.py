@@ -63,10 +63,14 @@ class ObsSpec:
 
 @dataclass(frozen=True)
 class StepResult:
+    """t: control steps since the reset (the time line); clock: those that count against the horizon
+    (every step but holds); done: success, or the clock at the horizon."""
+
     obs: np.ndarray
     success: bool
     done: bool
     t: int
+    clock: int
 
 
 def _make_scene_env(task: Task, horizon: int):
@@ -199,6 +203,11 @@ class Task(ABC):
         return self._t
 
     @property
+    def clock(self) -> int:
+        """Steps since the reset that count against the horizon (holds do not)."""
+        return self._clock
+
+    @property
     def seed(self) -> int | None:
         return self._seed
 
@@ -212,19 +221,25 @@ class Task(ABC):
         self.sim.forward()
         self._settle()
         self._t = 0
+        self._clock = 0
         self._gripper = -1.0
         return self.observe()
 
-    def step(self, action: np.ndarray) -> StepResult:
-        """Applies an absolute action (10,) for one control step (1 / CONTROL_FREQ s)."""
+    def step(self, action: np.ndarray, hold: bool = False) -> StepResult:
+        """Applies an absolute action (10,) for one control step (1 / CONTROL_FREQ s).
+
+        hold: the robot only holds its pose while it waits for an operator; the physics steps, but the
+        episode clock (what the horizon counts) does not: waiting for help does not use up the episode.
+        The policy's and the operator's steps count, as in the paper."""
         action = self.action_space.validate(action)
         env_action = np.concatenate([action[0:3], rot6d_to_rotvec(action[3:9]), action[9:10]])
         self.env.step(env_action)
         self._gripper = float(action[9])
         self._t += 1
+        self._clock += 0 if hold else 1
         self.on_step()
         success = self.check_success()
-        return StepResult(self.observe(), success, success or self._t >= self.horizon, self._t)
+        return StepResult(self.observe(), success, success or self._clock >= self.horizon, self._t, self._clock)
 
     def teleop(self, command: TeleopCommand) -> TeleopTarget:
         """Converts an operator command into an absolute action from the current pose."""

@@ -23,8 +23,10 @@ class RobotFrame:
     gripper command in force; pos: (3,) end-effector position (m, world frame); rot: (3, 3) its
     rotation matrix; quat: (4,) the same rotation as a quaternion (x, y, z, w); gripper: finger gap
     (m); bodies: object name -> (position (3,), quaternion xyzw (4,)); goal: what a human operator
-    sees of the scene's goal (plain JSON values); t: steps since the reset; success / done: the
-    task's outcome after this step; info: the task's episode details, set once ``done``.
+    sees of the scene's goal (plain JSON values); t: steps since the reset; clock: those of them that
+    count against the horizon (holds do not); horizon: the clock's limit (the task's); success / done:
+    the task's outcome after this step;
+    info: the task's episode details, set once ``done``.
     """
 
     obs: np.ndarray
@@ -36,6 +38,8 @@ class RobotFrame:
     bodies: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     goal: dict = field(default_factory=dict)
     t: int = 0
+    clock: int = 0
+    horizon: int = 0
     success: bool = False
     done: bool = False
     info: dict = field(default_factory=dict)
@@ -60,6 +64,8 @@ class RobotFrame:
             bodies={k: (np.asarray(p), np.asarray(q)) for k, (p, q) in task.object_poses().items()},
             goal={k: _jsonable(v) for k, v in (task.privileged() or {}).items()},
             t=0 if result is None else int(result.t),
+            clock=0 if result is None else int(result.clock),
+            horizon=int(task.horizon),
             success=bool(result.success) if result is not None else False,
             done=done,
             info=task.episode_info() if done else {},

@@ -25,7 +25,7 @@ import numpy as np
 from mcap.exceptions import McapError
 
 from storage import keys
-from storage.mcap_io import JsonMcapWriter, read_all, salvage, stamp
+from storage.mcap_io import JsonMcapWriter, read_all, rebuild, salvage, stamp
 
 _VEC = {"type": "array", "items": {"type": "number"}}
 _VEC3 = {
@@ -320,6 +320,19 @@ _TRUNCATED_HINT = (
 )
 
 
+def recover_episode(path: str | Path, reason: str = "interrupted") -> int:
+    """Rewrites an episode file left open by a crash as a complete, indexed MCAP that ends with an
+    ``/outcome`` (success false, the steps it keeps, ``reason``); returns those steps. A file that
+    already ends cleanly is left as it is. Raises EpisodeReadError when nothing is readable."""
+    path = Path(path)
+    episode = read_episode(path, recover=True)
+    if not episode.recovered and episode.outcome is not None:
+        return len(episode.actions)
+    steps = len(episode.actions)
+    rebuild(path, {keys.TOPIC_OUTCOME: {"success": False, "steps": steps, "reason": reason}})
+    return steps
+
+
 def read_episode(path: str | Path, recover: bool = False) -> Episode:
     """Reads one episode file.
 
@@ -356,4 +369,5 @@ __all__ = [
     "McapError",
     "TruncatedEpisodeError",
     "read_episode",
+    "recover_episode",
 ]

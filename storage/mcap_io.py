@@ -1,13 +1,17 @@
 """The MCAP plumbing that episodes and takeover segments share: a JSON-message writer with JSON
-schemas (zstd chunks, a running sequence number, flush to disk), Foxglove time stamps, and a reader
-that salvages what was flushed from a file cut off by a crash."""
+schemas (zstd chunks, a running sequence number, flush to disk), Foxglove time stamps, a reader
+that salvages what was flushed from a file cut off by a crash, and ``rebuild``, which turns such a
+file back into a complete, indexed MCAP that any standard reader opens."""
 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from mcap.reader import NonSeekingReader, make_reader
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from storage import keys
@@ -78,3 +82,51 @@ def salvage(path: Path) -> tuple[list, str | None]:
         except Exception as exc:  # noqa: BLE001 - any decode failure marks the truncation point
             return out, f"{type(exc).__name__}: {exc}"
     return out, None
+
+
+def rebuild(path: Path, append: dict[str, dict] | None = None) -> tuple[int, str | None]:
+    """Rewrites a file cut off by a crash as a complete, indexed MCAP: every schema, channel, message
+    and metadata record up to the point where the data breaks is copied to ``<path>.rebuild``, then
+    ``append`` (topic -> JSON payload, on channels the file already has) is added after the last
+    message, and the new file replaces the old one atomically (``os.replace``). Returns (messages
+    kept, why the old data stopped: None if it ended cleanly)."""
+    path = Path(path)
+    records, why = [], None
+    with open(path, "rb") as f:
+        try:
+            for record in StreamReader(f, validate_crcs=True).records:
+                if isinstance(record, Schema | Channel | Message | Metadata):
+                    records.append(record)
+        except Exception as exc:  # noqa: BLE001 - any decode failure marks the truncation point
+            why = f"{type(exc).__name__}: {exc}"
+    tmp = path.with_name(path.name + ".rebuild")
+    kept, last_ns, topics = 0, 0, {}
+    with open(tmp, "wb") as out:
+        writer = Writer(out, compression=CompressionType.ZSTD)
+        writer.start(profile=keys.MCAP_PROFILE, library="hitl")
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        for r in records:
+            if isinstance(r, Schema):
+                schema_ids[r.id] = writer.register_schema(r.name, r.encoding, r.data)
+            elif isinstance(r, Channel) and r.schema_id in schema_ids | {0: 0}:
+                channel_ids[r.id] = writer.register_channel(
+                    r.topic, r.message_encoding, ({0: 0} | schema_ids)[r.schema_id], dict(r.metadata)
+                )
+                topics[r.topic] = channel_ids[r.id]
+            elif isinstance(r, Message) and r.channel_id in channel_ids:
+                writer.add_message(channel_ids[r.channel_id], r.log_time, r.data, r.publish_time, r.sequence)
+                kept, last_ns = kept + 1, max(last_ns, r.log_time)
+            elif isinstance(r, Metadata):
+                writer.add_metadata(r.name, dict(r.metadata))
+        for topic, payload in (append or {}).items():
+            if topic not in topics:
+                raise ValueError(f"{path}: no channel {topic!r} to append to")
+            last_ns += 1
+            writer.add_message(topics[topic], last_ns, json.dumps(payload).encode(), last_ns, kept)
+            kept += 1
+        writer.finish()
+        out.flush()
+        os.fsync(out.fileno())
+    os.replace(tmp, path)
+    return kept - len(append or {}), why

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from storage import keys
-from storage.mcap_io import JsonMcapWriter, read_all, salvage, stamp
+from storage.mcap_io import JsonMcapWriter, read_all, rebuild, salvage, stamp
 
 _COLOURS = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16), (0.58, 0.4, 0.74)]
 _OBJ = {"type": "object"}
@@ -158,13 +158,39 @@ class SegmentWriter:
         self._last_flush = time.monotonic()
         self._dirty = False
 
-    def close(self, status: str = "closed") -> None:
+    def close(self, status: str = "closed", ended_by: str | None = None) -> None:
+        """Writes the end message (status, why the takeover ended, steps) and the file's index."""
         if self._mcap.closed:
             return
         try:
-            self._add("end", time.time_ns(), {"status": status, "steps": self.steps})
+            self._add("end", time.time_ns(), end_message(status, ended_by, self.steps))
         finally:
             self._mcap.close()
+
+
+def end_message(status: str, ended_by: str | None, steps: int) -> dict:
+    """The ``/takeover/end`` payload: status (closed, recovered), ended_by (hand-back, lease-expired,
+    episode-ended, worker-fault, reset, service-stopped, crash-recovered) and the steps recorded."""
+    return {"status": status, "ended_by": ended_by, "steps": int(steps)}
+
+
+def recover_segment(path: str | Path) -> int:
+    """Rewrites a segment left open by a crash as a complete, indexed MCAP with an end message
+    (``recovered``, ``crash-recovered``); returns the steps it keeps. Raises SegmentReadError when
+    nothing of the file is readable."""
+    path = Path(path)
+    if not path.is_file():
+        raise SegmentReadError(path, "no such file")
+    try:
+        seg = read_segment(path, recover=True)
+    except SegmentReadError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise SegmentReadError(path, f"unreadable ({type(exc).__name__}: {exc})") from exc
+    if seg.end is not None and not seg.recovered:
+        return len(seg.steps)  # already complete
+    rebuild(path, {keys.TOPIC_TAKEOVER_END: end_message("recovered", "crash-recovered", len(seg.steps))})
+    return len(seg.steps)
 
 
 @dataclass

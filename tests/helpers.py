@@ -87,28 +87,33 @@ class Service:
 class KinematicTask:
     """A light stand-in for a simulated task (no physics engine): the end effector jumps to each
     commanded target, the observation is the lift layout's size with the pose in front. Episodes end
-    after ``horizon`` steps, never in success. Fleet unit tests run on it in-process."""
+    after ``horizon`` counted steps (holds do not count, as in ``Task.step``), in success only when
+    ``success_z`` is set and the end effector is at or above it. Fleet unit tests run on it in-process."""
 
     name = "lift-cube"
 
-    def __init__(self, horizon: int = 1000):
+    def __init__(self, horizon: int = 1000, success_z: float | None = None):
         spec = make_task("lift-cube")
         self.action_space, self.obs_spec, self.horizon = spec.action_space, spec.obs_spec, horizon
-        self.t, self.action = 0, None
+        self.success_z = success_z
+        self.t = self.clock = 0
+        self.action = None
         self.closed = False
 
     def reset(self, seed: int):
         rng = np.random.default_rng(seed)
-        self.t = 0
+        self.t = self.clock = 0
         self.action = self.action_space.make_action(np.array([rng.uniform(-0.05, 0.05), 0.0, 1.0]), np.eye(3), -1.0)
         return self.observe()
 
-    def step(self, action):
+    def step(self, action, hold: bool = False):
         from sim.env import StepResult
 
         self.action = self.action_space.validate(action)
         self.t += 1
-        return StepResult(self.observe(), False, self.t >= self.horizon, self.t)
+        self.clock += 0 if hold else 1
+        success = self.success_z is not None and self.action[2] >= self.success_z
+        return StepResult(self.observe(), success, success or self.clock >= self.horizon, self.t, self.clock)
 
     def observe(self):
         obs = np.zeros(self.obs_spec.dim)

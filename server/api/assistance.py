@@ -8,11 +8,20 @@ import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse
-from pydantic import ValidationError
+from pydantic import BaseModel
 
 from server.api.deps import FleetDep, Operator, Viewer, websocket_principal
+from server.api.responses import AUTH, BODY, errors
 from server.api.robots import detail, summary
-from server.api.schemas import AssistanceRequestOut, CommandAccepted, RobotSummary, TeleopCommandIn
+from server.api.schemas import AssistanceRequestOut, CommandAccepted, Id, RobotSummary, TeleopCommandIn
+from server.api.ws_messages import (
+    CLOSE_UNKNOWN_ROBOT,
+    STATE_PERIOD_S,
+    TeleopAcceptedMessage,
+    TeleopErrorMessage,
+    TeleopStateMessage,
+    read_command,
+)
 from server.assistance import AssistanceRequest
 from server.errors import ServiceError
 from server.fleet import Fleet
@@ -36,25 +45,34 @@ def _out(req: AssistanceRequest) -> AssistanceRequestOut:
     )
 
 
-@router.get("/assistance", response_model=list[AssistanceRequestOut])
-def queue(fleet: FleetDep, _: Viewer) -> list[AssistanceRequestOut]:
+@router.get("/assistance", response_model=list[AssistanceRequestOut], responses=errors(AUTH))
+async def queue(fleet: FleetDep, _: Viewer) -> list[AssistanceRequestOut]:
     """Open requests, unclaimed first, by priority (uncertainty relative to threshold, and waiting time)."""
     return [_out(r) for r in fleet.queue.pending()]
 
 
-@router.post("/robots/{robot_id}/claim", response_model=AssistanceRequestOut)
-def claim(robot_id: int, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
+_HOLDER = errors(
+    AUTH,
+    404,
+    409,
+    422,
+    why={404: "no such robot", 409: "no open assistance request, or another operator holds the robot"},
+)
+
+
+@router.post("/robots/{robot_id}/claim", response_model=AssistanceRequestOut, responses=_HOLDER)
+def claim(robot_id: Id, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
     """Take control of a robot that asked for help: a lease, renewed by heartbeats."""
     return _out(fleet.claim(robot_id, who.name))
 
 
-@router.post("/robots/{robot_id}/heartbeat", response_model=AssistanceRequestOut)
-def heartbeat(robot_id: int, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
+@router.post("/robots/{robot_id}/heartbeat", response_model=AssistanceRequestOut, responses=_HOLDER)
+async def heartbeat(robot_id: Id, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
     return _out(fleet.heartbeat(robot_id, who.name))
 
 
-@router.post("/robots/{robot_id}/release", response_model=RobotSummary)
-def release(robot_id: int, fleet: FleetDep, who: Operator) -> RobotSummary:
+@router.post("/robots/{robot_id}/release", response_model=RobotSummary, responses=_HOLDER)
+def release(robot_id: Id, fleet: FleetDep, who: Operator) -> RobotSummary:
     """Hand the robot back to its policy."""
     fleet.release(robot_id, who.name)
     return summary(fleet.view(robot_id))
@@ -64,24 +82,39 @@ def _command(body: TeleopCommandIn) -> TeleopCommand:
     return TeleopCommand(tuple(body.delta_pos), tuple(body.delta_rot), body.gripper)
 
 
-@router.post("/robots/{robot_id}/command", response_model=CommandAccepted)
-def command(robot_id: int, body: TeleopCommandIn, fleet: FleetDep, who: Operator) -> CommandAccepted:
+@router.post(
+    "/robots/{robot_id}/command",
+    response_model=CommandAccepted,
+    responses=errors(
+        AUTH,
+        BODY,
+        404,
+        409,
+        429,
+        why={404: "no such robot", 409: "the robot is not under teleop, or you do not hold it"},
+    ),
+)
+async def command(robot_id: Id, body: TeleopCommandIn, fleet: FleetDep, who: Operator) -> CommandAccepted:
     """One teleop command, applied exactly once at the next control tick. Only the lease holder may
     command. Commands arriving between two ticks compose into that tick's step (translations add,
     rotations compose in order, the newest gripper command wins); a command that would take the
     composed step over the per-step limits (3 cm, 0.2 rad) is refused with 429 and nothing waiting
     changes: send it again after the next tick. ``pending`` says how many commands the next tick
-    applies."""
+    applies. 409 for a robot that is not under teleop (autonomous, waiting, paused, ...) or that another
+    operator holds; 404 only for an unknown robot."""
     pending = fleet.command(robot_id, who.name, _command(body))
     return CommandAccepted(robot_id=robot_id, pending=pending)
 
 
 @router.websocket("/robots/{robot_id}/teleop")
 async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
-    """Streams commands in (TeleopCommandIn JSON) and robot state out (RobotDetail JSON, ~10 Hz).
+    """Commands in (``TeleopCommandIn``), robot state out (``TeleopStateMessage``, every 0.1 s), and one
+    ``TeleopAcceptedMessage`` or ``TeleopErrorMessage`` answering each message, in order. The message models
+    and their schemas: ``server.api.ws_messages``; the protocol: docs/websocket.md.
 
     Auth: ``Authorization: Bearer`` header or ``?token=`` (HTTP 401 without a valid token); commands
-    need the operator role (a 403 reply otherwise).
+    need the operator role (a 403 reply otherwise). A refused message changes nothing and the socket
+    stays open; an unknown robot gets a 404 error message and the close code 4404.
     """
     fleet: Fleet = websocket.app.state.fleet
     principal = websocket_principal(websocket, "viewer")
@@ -92,33 +125,41 @@ async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
     try:
         fleet.robot(robot_id)
     except ServiceError as exc:
-        await websocket.send_json({"error": str(exc), "status": exc.status})
-        await websocket.close(code=4404)
+        await _send(websocket, TeleopErrorMessage(error=str(exc), status=exc.status))
+        await websocket.close(code=CLOSE_UNKNOWN_ROBOT)
         return
+    max_bytes = websocket.app.state.settings.max_body_bytes
 
     async def send_state() -> None:
         while True:
-            state = detail(fleet.view(robot_id)).model_dump(mode="json")
-            await websocket.send_json({"state": state})
-            await asyncio.sleep(0.1)
+            await _send(websocket, TeleopStateMessage(state=detail(fleet.view(robot_id))))
+            await asyncio.sleep(STATE_PERIOD_S)
 
     sender = asyncio.create_task(send_state())
     try:
         while True:
-            data = await websocket.receive_json()
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                break
             if not principal.has("operator"):
-                await websocket.send_json({"error": "commanding needs the operator role", "status": 403})
+                await _send(websocket, TeleopErrorMessage(error="commanding needs the operator role", status=403))
+                continue
+            body = read_command(message, max_bytes)  # bad values are not echoed
+            if isinstance(body, TeleopErrorMessage):
+                await _send(websocket, body)
                 continue
             try:
-                cmd = _command(TeleopCommandIn.model_validate(data))
-                pending = fleet.command(robot_id, principal.name, cmd)
-                await websocket.send_json({"accepted": True, "pending": pending})
-            except ValidationError as exc:
-                errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
-                await websocket.send_json({"error": errors, "status": 422})  # bad values are not echoed
+                pending = fleet.command(robot_id, principal.name, _command(body))
             except ServiceError as exc:
-                await websocket.send_json({"error": str(exc), "status": exc.status})
+                await _send(websocket, TeleopErrorMessage(error=str(exc), status=exc.status))
+                continue
+            await _send(websocket, TeleopAcceptedMessage(pending=pending))
     except WebSocketDisconnect:
         pass
     finally:
         sender.cancel()
+        await asyncio.gather(sender, return_exceptions=True)  # a send that failed on a closed socket ends here
+
+
+async def _send(websocket: WebSocket, message: BaseModel) -> None:
+    await websocket.send_json(message.model_dump(mode="json"))

@@ -1,11 +1,16 @@
-"""``/robots``: list, get, operator view; pause, resume, reset (admin)."""
+"""``/robots``: list, get, operator view; pause, resume, reset (admin).
+
+The reads are ``async``: they only read each robot's published snapshot, never the fleet lock, so
+they run on the event loop without a threadpool hop. The control routes take the fleet lock (they
+wait for a tick in progress) and stay synchronous, in the threadpool."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter
 
 from server.api.deps import Admin, FleetDep, Viewer
-from server.api.schemas import OperatorView, PoseOut, RobotDetail, RobotSummary, UncertaintyOut
+from server.api.responses import AUTH, errors
+from server.api.schemas import Id, OperatorView, PoseOut, RobotDetail, RobotSummary, UncertaintyOut
 from server.fleet import Fleet
 from server.robot import RobotView
 
@@ -74,18 +79,18 @@ def _get(fleet: Fleet, robot_id: int) -> RobotView:
     return fleet.view(robot_id)
 
 
-@router.get("", response_model=list[RobotSummary])
-def list_robots(fleet: FleetDep, _: Viewer) -> list[RobotSummary]:
+@router.get("", response_model=list[RobotSummary], responses=errors(AUTH))
+async def list_robots(fleet: FleetDep, _: Viewer) -> list[RobotSummary]:
     return [summary(r) for r in fleet.views()]
 
 
-@router.get("/{robot_id}", response_model=RobotDetail)
-def get_robot(robot_id: int, fleet: FleetDep, _: Viewer) -> RobotDetail:
+@router.get("/{robot_id}", response_model=RobotDetail, responses=errors(AUTH, 404, 422))
+async def get_robot(robot_id: Id, fleet: FleetDep, _: Viewer) -> RobotDetail:
     return detail(_get(fleet, robot_id))
 
 
-@router.get("/{robot_id}/view", response_model=OperatorView)
-def operator_view(robot_id: int, fleet: FleetDep, _: Viewer) -> OperatorView:
+@router.get("/{robot_id}/view", response_model=OperatorView, responses=errors(AUTH, 404, 422))
+async def operator_view(robot_id: Id, fleet: FleetDep, _: Viewer) -> OperatorView:
     """What a human operator sees: the scene's body poses, the goal and the last denoising result."""
     robot = _get(fleet, robot_id)
     frame = robot.frame
@@ -101,19 +106,22 @@ def operator_view(robot_id: int, fleet: FleetDep, _: Viewer) -> OperatorView:
     )
 
 
-@router.post("/{robot_id}/pause", response_model=RobotSummary)
-def pause(robot_id: int, fleet: FleetDep, _: Admin) -> RobotSummary:
+_CONTROL = errors(AUTH, 404, 409, 422, why={409: "the robot is faulted (pause, reset) or not paused (resume)"})
+
+
+@router.post("/{robot_id}/pause", response_model=RobotSummary, responses=_CONTROL)
+def pause(robot_id: Id, fleet: FleetDep, _: Admin) -> RobotSummary:
     fleet.pause(robot_id)
     return summary(fleet.view(robot_id))
 
 
-@router.post("/{robot_id}/resume", response_model=RobotSummary)
-def resume(robot_id: int, fleet: FleetDep, _: Admin) -> RobotSummary:
+@router.post("/{robot_id}/resume", response_model=RobotSummary, responses=_CONTROL)
+def resume(robot_id: Id, fleet: FleetDep, _: Admin) -> RobotSummary:
     fleet.resume(robot_id)
     return summary(fleet.view(robot_id))
 
 
-@router.post("/{robot_id}/reset", response_model=RobotSummary)
-def reset(robot_id: int, fleet: FleetDep, _: Admin) -> RobotSummary:
+@router.post("/{robot_id}/reset", response_model=RobotSummary, responses=_CONTROL)
+def reset(robot_id: Id, fleet: FleetDep, _: Admin) -> RobotSummary:
     fleet.reset(robot_id)
     return summary(fleet.view(robot_id))

@@ -4,12 +4,45 @@ from __future__ import annotations
 
 import math
 from datetime import datetime
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 MAX_DELTA_POS = 0.1  # m per command; larger is rejected (the robot clamps to 3 cm per step anyway)
 MAX_DELTA_ROT = 0.5  # rad per command
+# Id columns are INTEGER: 64-bit in SQLite but 32-bit in PostgreSQL; the API takes what both can store.
+ID_MAX = 2**31 - 1
+
+# Every id the API takes, in a path, a query or a body (robots, episodes, segments, policy versions):
+# out of the database's range is a 422, never an overflow inside the database driver.
+Id = Annotated[int, Field(ge=0, le=ID_MAX)]
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Quaternion = Annotated[list[float], Field(min_length=4, max_length=4, description="x, y, z, w")]
+RobotMode = Literal["autonomous", "waiting", "teleop", "paused", "done", "faulted"]
+
+
+class FieldError(BaseModel):
+    """One part of a request that does not validate; its value is not echoed (NaN and infinities are
+    not JSON)."""
+
+    loc: list[str | int] = Field(..., description="where: path, query, header or body, then the field")
+    msg: str
+    type: str
+
+
+class ErrorOut(BaseModel):
+    """Every error answer of the API (4xx): a message, or for a request that does not validate, one
+    entry per problem."""
+
+    detail: str | list[FieldError]
+
+
+class HealthOut(BaseModel):
+    status: Literal["ok"]
+
+
+class ReadyOut(BaseModel):
+    ready: bool = Field(..., description="the control loop has ticked (HTTP 503 until then)")
 
 
 def _finite_vector(name: str, v: list[float], limit: float) -> list[float]:
@@ -27,11 +60,22 @@ class TeleopCommandIn(BaseModel):
     """A delta end-effector pose (world frame) and a gripper command (-1 open .. +1 closed)."""
 
     model_config = ConfigDict(extra="forbid")
-    delta_pos: list[float] = Field(..., description=f"metres, norm <= {MAX_DELTA_POS}")
+    delta_pos: list[float] = Field(..., min_length=3, max_length=3, description=f"metres, norm <= {MAX_DELTA_POS}")
     delta_rot: list[float] = Field(
-        default_factory=lambda: [0.0, 0.0, 0.0], description=f"rotation vector, rad, norm <= {MAX_DELTA_ROT}"
+        default_factory=lambda: [0.0, 0.0, 0.0],
+        min_length=3,
+        max_length=3,
+        description=f"rotation vector, rad, norm <= {MAX_DELTA_ROT}",
     )
     gripper: float = Field(..., ge=-1.0, le=1.0)
+
+    @field_validator("delta_pos", "delta_rot", mode="before")
+    @classmethod
+    def _three(cls, v, info: ValidationInfo):
+        # before pydantic's own length check, to keep the message clients get
+        if isinstance(v, list | tuple) and len(v) != 3:
+            raise ValueError(f"{info.field_name} must have 3 components, got {len(v)}")
+        return v
 
     @field_validator("delta_pos")
     @classmethod
@@ -63,22 +107,22 @@ class UncertaintyOut(BaseModel):
     var_g: float
     n: int
     threshold: float
-    samples: list[list[float]]
-    vectors: list[list[float]]
+    samples: list[Vec3]
+    vectors: list[Vec3]
     labels: list[int]
-    means: list[list[float]]
+    means: list[Vec3]
     weights: list[float]
 
 
 class PoseOut(BaseModel):
-    position: list[float]
-    quaternion: list[float]  # xyzw
+    position: Vec3
+    quaternion: Quaternion
 
 
 class RobotSummary(BaseModel):
     id: int
     task: str
-    mode: Literal["autonomous", "waiting", "teleop", "paused", "done", "faulted"]
+    mode: RobotMode
     policy_version: int
     episode_id: int | None
     episode_step: int
@@ -103,7 +147,7 @@ class RobotDetail(RobotSummary):
 class OperatorView(BaseModel):
     robot_id: int
     task: str
-    mode: str
+    mode: RobotMode
     pose: PoseOut | None
     gripper: float | None
     bodies: dict[str, PoseOut]
@@ -147,7 +191,12 @@ class SegmentOut(BaseModel):
     policy_id: int | None
     operator: str
     reason: str
-    status: str
+    status: str = Field(..., description="open, closed, or recovered (left open by a crash, rewritten at start)")
+    ended_by: str | None = Field(
+        None,
+        description="why it ended: hand-back, lease-expired, episode-ended, worker-fault, reset, service-stopped, "
+        "crash-recovered",
+    )
     steps: int
     started_at: datetime
     ended_at: datetime | None
@@ -170,9 +219,9 @@ class PolicyIn(BaseModel):
     """A policy folder (``model.safetensors`` + ``config.json``) on the server's disk."""
 
     model_config = ConfigDict(extra="forbid")
-    path: str = Field(..., min_length=1, max_length=1024)
+    path: str = Field(..., min_length=1, max_length=1024, pattern=r"^[^\x00]+$", description="no NUL characters")
     task: str | None = Field(None, max_length=64, description="default: the task in the folder's config.json")
-    parent_id: int | None = Field(None, ge=1, le=2**62)
+    parent_id: Id | None = None
 
 
 class FleetMetrics(BaseModel):

@@ -6,18 +6,19 @@ from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, generate_latest
 
 from server.api.deps import FleetDep, Viewer
-from server.api.schemas import FleetMetrics
+from server.api.responses import AUTH, errors
+from server.api.schemas import FleetMetrics, HealthOut, ReadyOut
 
 router = APIRouter(tags=["system"])
 api = APIRouter(tags=["metrics"])
 
 
-@router.get("/healthz")
+@router.get("/healthz", response_model=HealthOut)
 def healthz() -> dict:
     return {"status": "ok"}
 
 
-@router.get("/readyz")
+@router.get("/readyz", response_model=ReadyOut, responses={503: {"model": ReadyOut, "description": "not ready yet"}})
 def readyz(request: Request, response: Response) -> dict:
     fleet = getattr(request.app.state, "fleet", None)
     ready = fleet is not None and fleet.ticks > 0
@@ -26,13 +27,26 @@ def readyz(request: Request, response: Response) -> dict:
     return {"ready": ready}
 
 
-@api.get("/metrics/fleet", response_model=FleetMetrics)
+@api.get("/metrics/fleet", response_model=FleetMetrics, responses=errors(AUTH))
 def fleet_metrics(fleet: FleetDep, _: Viewer) -> dict:
     return fleet.metrics()
 
 
-@router.get("/metrics")
+@router.get(
+    "/metrics",
+    # a class without a media type: FastAPI then documents 200 only as the text/plain below, and the
+    # errors as JSON (with PlainTextResponse it would document ErrorOut as text/plain too)
+    response_class=Response,
+    responses={
+        200: {
+            "description": "Prometheus text exposition format",
+            "content": {"text/plain": {"schema": {"type": "string"}}},
+        }
+    }
+    | errors(AUTH),
+)
 def prometheus(fleet: FleetDep, _: Viewer) -> Response:
+    """Fleet gauges in the Prometheus text format (``Content-Type: text/plain; version=...``)."""
     registry = CollectorRegistry()
     m = fleet.metrics()
     Gauge("hitl_episodes_total", "finished episodes", registry=registry).set(m["episodes"])

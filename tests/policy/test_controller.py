@@ -153,11 +153,11 @@ def test_asking_holding_a_budgeted_takeover_and_a_fresh_history_on_hand_back():
     assert any(t.any() for t in signal.seen_teleop)  # the trigger rule saw the teleop flags
 
 
-def test_continuous_mode_returns_control_when_the_switch_back_rule_fires():
+@pytest.mark.parametrize("return_after", [None, 1])
+def test_continuous_mode_returns_control_when_the_operator_or_the_switch_back_rule_says_so(return_after):
     policy, signal = tiny_policy(), Scripted()
-    controller = Controller(
-        policy, {"scripted": signal}, "scripted", KinematicTask().action_space, ControllerConfig(hand_back="continuous")
-    )
+    config = ControllerConfig(hand_back="continuous", return_after=return_after, cooldown=2)
+    controller = Controller(policy, {"scripted": signal}, "scripted", KinematicTask().action_space, config)
     controller.reset(4, seed=1)
     frames = _frames(_tasks({4: 1}))
     controller.ask(4, frames[4].hold)
@@ -168,7 +168,14 @@ def test_continuous_mode_returns_control_when_the_switch_back_rule_fires():
         assert not controller.step(frames, {4: cmd})[4].returned
     signal.keep.clear()  # the rule says the policy can take over again
     st = controller.step(frames, {4: cmd})[4]
-    assert st.returned and controller.mode(4) == Mode.AUTONOMOUS
+    if return_after is None:  # only the operator hands back
+        assert not st.returned and controller.mode(4) == Mode.TELEOP
+        controller.release(4)
+    else:
+        assert st.returned
+    assert controller.mode(4) == Mode.AUTONOMOUS
+    signal.ask.add(4)  # it wants help again at once: the cooldown holds the request back two steps
+    assert [controller.step(frames)[4].asked for _ in range(3)] == [False, False, True]
 
 
 def test_a_shadow_run_scores_but_never_asks():

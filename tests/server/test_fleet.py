@@ -22,16 +22,16 @@ class Recorded(InProcessWorker):
         super().__init__(task)
         self.actions, self.priority = [], None
 
-    def request_step(self, action):
+    def request_step(self, action, hold=False):
         self.actions.append(np.array(action))
-        super().request_step(action)
+        super().request_step(action, hold)
 
     def prioritize(self, priority):
         self.priority = priority
         return True
 
 
-def _fleet(tmp_path, threshold=-1.0, horizon=1000, count=1, workers=None, **settings):
+def _fleet(tmp_path, threshold=-1.0, horizon=1000, count=1, workers=None, success_z=None, **settings):
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold)
     s = Settings(
         data_dir=tmp_path / "var",
@@ -43,7 +43,7 @@ def _fleet(tmp_path, threshold=-1.0, horizon=1000, count=1, workers=None, **sett
     made = []
 
     def factory(robot_id, task):
-        made.append(Recorded(KinematicTask(horizon)))
+        made.append(Recorded(KinematicTask(horizon, success_z)))
         return made[-1]
 
     fleet = Fleet(s, session_factory(make_engine(s.db_url)), workers or factory)
@@ -184,11 +184,127 @@ def _recording_real_workers():
         sent = []
         step = worker.request_step
 
-        def request_step(action):
+        def request_step(action, hold=False):
             sent.append(np.array(action))
-            step(action)
+            step(action, hold)
 
         worker.request_step, worker.actions = request_step, sent
         return worker
 
     return factory
+
+
+def _segments(fleet):
+    from server.db import SegmentRecord
+
+    with fleet.sessions() as s:
+        return s.query(SegmentRecord).order_by(SegmentRecord.id).all()
+
+
+def _episodes(fleet):
+    from server.db import EpisodeRecord
+
+    with fleet.sessions() as s:
+        return s.query(EpisodeRecord).order_by(EpisodeRecord.id).all()
+
+
+def test_waiting_does_not_use_up_the_horizon_and_a_timeout_waits_for_the_hand_back(tmp_path):
+    fleet, workers = _fleet(tmp_path, horizon=5, trigger_mode="continuous", auto_return_steps=1000)
+    for _ in range(30):  # asks at once, then waits six horizons' worth of ticks for an operator
+        fleet.tick()
+    robot = fleet.view(0)
+    assert robot.mode == "waiting" and robot.episodes_done == 0
+    assert robot.frame.t == 29 and robot.frame.clock == 0  # the physics held 29 steps; the clock did not run
+    fleet.claim(0, "op")
+    for _ in range(8):  # the operator drives past the horizon: the episode does not end under their hands
+        fleet.command(0, "op", UP)
+        fleet.tick()
+    robot = fleet.view(0)
+    assert robot.mode == "teleop" and robot.episodes_done == 0 and robot.frame.clock >= 5
+    fleet.release(0, "op")
+    fleet.tick()  # the first frame after the hand-back ends the episode as the timeout it was
+    assert fleet.view(0).episodes_done == 1
+    [segment] = _segments(fleet)
+    assert segment.status == "closed" and segment.ended_by == "hand-back" and segment.steps == 8
+    first = _episodes(fleet)[0]
+    assert first.outcome == "timeout" and first.steps == 8 and first.assisted_steps == 8  # only counted steps
+
+
+def test_a_takeover_ends_with_the_episode_only_at_success_or_with_the_lease(tmp_path):
+    fleet, _ = _fleet(tmp_path, horizon=3, success_z=1.05, trigger_mode="continuous", auto_return_steps=1000)
+    fleet.tick()
+    fleet.claim(0, "op")
+    for _ in range(5):  # z climbs 1 cm a step from 1.0: past the horizon (3), then at 1.05 success
+        assert fleet.view(0).mode == "teleop"
+        fleet.command(0, "op", UP)
+        fleet.tick()
+    fleet.tick()
+    assert fleet.view(0).episodes_done == 1 and fleet.view(0).successes == 1
+    [segment] = _segments(fleet)
+    assert segment.ended_by == "episode-ended" and segment.steps == 5
+    assert _episodes(fleet)[0].outcome == "success"
+
+    # a lease that runs out past the horizon: the request goes back to the queue, and the episode ends
+    lapsed, _ = _fleet(tmp_path / "lease", horizon=2, lease_seconds=0.05, trigger_mode="continuous")
+    lapsed.tick()
+    lapsed.claim(0, "op")
+    for _ in range(3):
+        lapsed.command(0, "op", TeleopCommand((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), -1.0))
+        lapsed.tick()
+    assert lapsed.view(0).mode == "teleop" and lapsed.view(0).episodes_done == 0
+    import time
+
+    time.sleep(0.1)
+    lapsed.tick()  # the lease expired: the robot holds, its segment closes
+    lapsed.tick()  # the frame after that hold ends the timed-out episode
+    assert lapsed.view(0).episodes_done == 1 and _episodes(lapsed)[0].outcome == "timeout"
+    assert [s.ended_by for s in _segments(lapsed)] == ["lease-expired"]
+
+
+def test_a_cooldown_after_the_hand_back_keeps_a_robot_from_flooding_the_queue(tmp_path):
+    fleet, _ = _fleet(tmp_path, budget_steps=2, cooldown_steps=3)  # threshold -1: always wants help
+    fleet.tick()
+    fleet.claim(0, "op")
+    for _ in range(2):
+        fleet.command(0, "op", UP)
+        fleet.tick()
+    assert fleet.view(0).mode == "autonomous"  # the budget is spent: control is back
+    modes = []
+    for _ in range(5):
+        fleet.tick()
+        modes.append(fleet.view(0).mode)
+    # three policy steps without a request, then it asks again
+    assert modes == ["autonomous", "autonomous", "autonomous", "waiting", "waiting"]
+
+
+def test_the_watchdog_asks_once_when_an_episode_runs_long(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=10, watchdog=0.5, budget_steps=1, cooldown_steps=0)
+    modes = []
+    for _ in range(6):  # the signal never asks; five policy steps are half the horizon
+        fleet.tick()
+        modes.append(fleet.view(0).mode)
+    assert modes == ["autonomous"] * 5 + ["waiting"]
+    assert fleet.queue.get(0).reason == "watchdog: 5 of 10 steps without success"
+    fleet.claim(0, "op")
+    fleet.command(0, "op", UP)
+    fleet.tick()
+    assert fleet.view(0).mode == "autonomous"  # the budget of one step is spent
+    for _ in range(3):  # once per episode: it does not ask again
+        fleet.tick()
+        assert fleet.view(0).mode == "autonomous"
+
+
+def test_an_accepted_command_renews_the_lease(tmp_path):
+    import time
+
+    fleet, _ = _fleet(tmp_path, lease_seconds=0.3, trigger_mode="continuous")
+    fleet.tick()
+    fleet.claim(0, "op")
+    for _ in range(6):  # 0.6 s of driving, two leases' worth, with no heartbeat
+        fleet.command(0, "op", UP)
+        fleet.tick()
+        time.sleep(0.1)
+    assert fleet.view(0).mode == "teleop" and fleet.queue.get(0).holder == "op"
+    time.sleep(0.4)  # then silence: the lease runs out
+    fleet.tick()
+    assert fleet.view(0).mode == "waiting" and fleet.queue.get(0).holder is None

@@ -32,6 +32,7 @@ def service(tmp_path_factory):
         robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
         lease_seconds=1.5,
         budget_steps=3,
+        cooldown_steps=0,  # robots ask again at once after a hand-back: each test finds them waiting and held
         control_hz=20,
         shadow_signals=["output-variance", "random"],
     )
@@ -258,3 +259,35 @@ def test_a_shadow_run_scores_every_step_and_never_asks(tmp_path):
         for r in robots:
             detail = httpx.get(f"{api}/robots/{r['id']}", headers=h).json()
             assert len(detail["u_history"]) >= 5 and all(math.isfinite(u) and u >= 0 for u in detail["u_history"])
+
+
+def test_the_operator_bot_survives_an_episode_that_ends_mid_takeover(service):
+    from server.operator_bot import OperatorBot, TakeoverOver, ViewTask
+
+    with pytest.raises(TakeoverOver):  # the view of a robot with no scene to drive
+        ViewTask({"robot_id": 0, "task": "lift-cube", "mode": "teleop", "pose": None, "gripper": None, "goal": {}})
+    migrate(service.settings.db_url)
+    token = create_token(session_factory(make_engine(service.settings.db_url)), "bot-reset", "operator")
+    api = service.url + "/api/v1"
+    resets = []
+
+    class ResettingBot(OperatorBot):
+        """Has an admin reset its robot right after its first claim: that episode ends under its hands."""
+
+        def _get(self, path):
+            if path.endswith("/view") and not resets:
+                rid = int(path.split("/")[2])
+                assert httpx.post(f"{api}/robots/{rid}/reset", headers=_h(service, "admin")).status_code == 200
+                resets.append(rid)
+            return super()._get(path)
+
+    bot = ResettingBot(service.url, token)
+    try:
+        bot.run(max_takeovers=3)
+    finally:
+        bot.close()
+    assert resets and bot.takeovers == 3 and bot.errors == 0
+    segs = httpx.get(api + "/segments?operator=bot-reset", headers=_h(service, "viewer")).json()
+    first = min(segs, key=lambda s: s["id"])
+    assert first["ended_by"] == "reset" and first["robot_id"] == resets[0]
+    assert all(s["ended_by"] in ("hand-back", "reset") for s in segs)

@@ -1,18 +1,23 @@
 """Faults: a worker that dies, a server killed mid-takeover, and a clean SIGTERM."""
 
+import json
 import multiprocessing
 import os
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import httpx
 import pytest
+from mcap.reader import make_reader
 
 from server.auth import create_token
-from server.db import SegmentRecord, make_engine, migrate, session_factory
+from server.db import EpisodeRecord, SegmentRecord, make_engine, migrate, session_factory
+from server.recording import resolve
 from server.settings import RobotGroup, Settings
+from storage.segments import read_segment
 from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
 
 
@@ -49,7 +54,9 @@ def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
         assert "exited" in robot["fault"] or "broke" in robot["fault"]
         with sessions() as s:
             rows = s.query(SegmentRecord).all()
-            assert rows and all(r.status == "closed" for r in rows)
+            assert rows and all(r.status == "closed" and r.ended_by == "worker-fault" for r in rows)
+        ends = [read_segment(resolve(settings.data_dir, r.path)).end for r in rows]
+        assert all(e["status"] == "closed" and e["ended_by"] == "worker-fault" for e in ends)  # the file says why
         # restarted with backoff, then the policy runs (and, with this threshold, asks) again
         again = wait_for(
             lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] in ("autonomous", "waiting") and r, 30
@@ -82,12 +89,24 @@ def _ready(url, timeout=120):
     raise AssertionError("service did not start")
 
 
-@pytest.mark.parametrize(("sig", "status"), [(signal.SIGKILL, "recovered"), (signal.SIGTERM, "closed")])
-def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status):
+def _standard_read(path):
+    """Every message of an MCAP file through the ``mcap`` library's indexed (seeking) reader, as any
+    MCAP tool reads it: it needs the file's summary, footer and closing magic."""
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        assert reader.get_summary() is not None and reader.get_summary().chunk_indexes
+        return [(c.topic, json.loads(m.data)) for _, c, m in reader.iter_messages()]
+
+
+@pytest.mark.parametrize(
+    ("sig", "status", "ended_by"),
+    [(signal.SIGKILL, "recovered", "crash-recovered"), (signal.SIGTERM, "closed", "service-stopped")],
+)
+def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status, ended_by):
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
     config = tmp_path / "fleet.toml"
     config.write_text(
-        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget_steps = 100\n'
+        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget_steps = 100\nrecord_episodes = true\n'
         f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
     )
     settings = Settings.load(config)
@@ -95,16 +114,20 @@ def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status):
     h = {"Authorization": f"Bearer {create_token(sessions, 'op', 'operator')}"}
     port = free_port()
     url = f"http://127.0.0.1:{port}"
+    api = url + "/api/v1"
     proc = _serve(config, port)
+    sent = []
     try:
         _ready(url)
-        wait_for(lambda: httpx.get(url + "/api/v1/robots/0", headers=h).json()["mode"] == "waiting")
-        assert httpx.post(url + "/api/v1/robots/0/claim", headers=h).status_code == 200
-        cmd = {"delta_pos": [0, 0, 0.01], "gripper": -1}
-        for _ in range(3):
-            httpx.post(url + "/api/v1/robots/0/command", json=cmd, headers=h)
-            time.sleep(0.4)  # > the 1 s flush interval in total
-        time.sleep(1.2)
+        wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
+        assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
+        for i in range(5):  # distinct commands, each applied before the next
+            before = httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"]
+            cmd = {"delta_pos": [0.0, 0.0, 0.001 * (i + 1)], "gripper": -1}
+            assert httpx.post(api + "/robots/0/command", json=cmd, headers=h).status_code == 200
+            sent.append(cmd["delta_pos"])
+            wait_for(lambda b=before: httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"] > b)
+        time.sleep(1.5)  # past the 1 s flush interval: every accepted command is on disk
         proc.send_signal(sig)
         # the process ends by the signal (uvicorn re-raises SIGTERM once its graceful shutdown is done)
         assert proc.wait(timeout=60) == -sig
@@ -113,7 +136,10 @@ def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status):
             proc.kill()
     if sig == signal.SIGKILL:
         with sessions() as s:
-            assert s.query(SegmentRecord).one().status == "open"  # the crash left it open
+            row = s.query(SegmentRecord).one()
+            assert row.status == "open"  # the crash left it open, its file cut off:
+            with pytest.raises(Exception, match="magic|footer|summary|EndOfFile|Invalid|record"):
+                _standard_read(resolve(settings.data_dir, row.path))
         proc = _serve(config, port)  # the restart recovers it
         try:
             _ready(url)
@@ -122,7 +148,23 @@ def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status):
             proc.wait(timeout=60)
     with sessions() as s:
         row = s.query(SegmentRecord).one()
-        assert row.status == status and row.steps >= 1
+        assert row.status == status and row.ended_by == ended_by and row.steps >= len(sent)
+        assert not Path(row.path).is_absolute()  # relative to data_dir: the folder can move
+        path = resolve(settings.data_dir, row.path)
+        interrupted = s.query(EpisodeRecord).filter(EpisodeRecord.outcome.is_(None)).all()
+        assert not interrupted  # no episode row is left open
+        first = s.query(EpisodeRecord).order_by(EpisodeRecord.id).first()
+    messages = _standard_read(path)
+    commands = [m["command"]["delta_pos"] for topic, m in messages if topic == "/takeover/step"]
+    assert commands[: len(sent)] == sent  # every command accepted before the last flush, in order
+    end = [m for topic, m in messages if topic == "/takeover/end"]
+    assert len(end) == 1 and end[0]["status"] == status and end[0]["ended_by"] == ended_by
+    expected = "interrupted" if sig == signal.SIGKILL else "stopped"
+    assert first.outcome == expected and first.ended_at is not None
+    if sig == signal.SIGKILL:  # the episode file open at the crash is a complete MCAP too
+        episode = _standard_read(resolve(settings.data_dir, first.path))
+        outcome = [m for topic, m in episode if topic == "/outcome"]
+        assert outcome == [{"success": False, "steps": first.steps, "reason": "interrupted"}]
 
 
 def test_whole_episodes_are_recorded_when_asked(tmp_path):
@@ -145,6 +187,6 @@ def test_whole_episodes_are_recorded_when_asked(tmp_path):
 
     with sessions() as s:
         row = s.get(EpisodeRecord, done[-1]["id"])
-    ep = read_episode(row.path)
+    ep = read_episode(resolve(settings.data_dir, row.path))
     assert len(ep) == row.steps == done[-1]["steps"] and ep.outcome is not None
     assert set(ep.sources) == {"policy"}

@@ -1,0 +1,150 @@
+"""``hitl bench loop``: does the human-in-the-loop loop close? The demo fleet served by a real
+``hitl serve`` process (a config file, ``configs/demo.toml`` by default, with the hand-back mode and
+any settings overridden through ``HITL_*`` variables), the simulated operator (``OperatorBot``, the
+REST API only) serving its queue from this process, for a wall-clock duration. Reported from the
+service's own database: episodes that ended on their own (success or timeout) and their success
+rate, overall and per task; assistance events, assisted steps and takeovers per task; episodes
+interrupted; the bot's takeovers, commands and errors.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import httpx
+from sqlalchemy import select
+from tqdm import tqdm
+
+from server.auth import create_token
+from server.db import EpisodeRecord, SegmentRecord, make_engine, migrate, session_factory
+from server.operator_bot import OperatorBot
+from server.recording import FINISHED
+from server.settings import Settings
+
+DEMO_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "demo.toml"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_ready(url: str, proc: subprocess.Popen, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"hitl serve exited with code {proc.returncode} before it was ready")
+        try:
+            if httpx.get(url + "/readyz", timeout=2).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.5)
+    raise RuntimeError(f"the service was not ready after {timeout:.0f} s")
+
+
+def run_loop(
+    seconds: float,
+    mode: str = "continuous",
+    config: Path | None = None,
+    data_dir: Path | None = None,
+    env: dict[str, str] | None = None,
+    bot: bool = True,
+    progress: bool = True,
+) -> dict:
+    """Serves ``config`` with ``trigger_mode = mode`` for ``seconds`` (after readiness) with the operator
+    bot helping (``bot``), then stops the service with SIGTERM and reports what its database holds."""
+    config = Path(config) if config is not None else DEMO_CONFIG
+    data_dir = Path(tempfile.mkdtemp(prefix="hitl-loop-")) if data_dir is None else Path(data_dir)
+    overrides = {"HITL_DATA_DIR": str(data_dir), "HITL_TRIGGER_MODE": mode, **(env or {})}
+    settings = Settings.load(config, data_dir=data_dir, trigger_mode=mode)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    migrate(settings.db_url)
+    sessions = session_factory(make_engine(settings.db_url))
+    token = create_token(sessions, f"bench-bot-{time.time_ns()}", "operator")
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    cmd = [sys.executable, "-m", "hitl.cli", "serve", "--config", str(config), "--port", str(port)]
+    proc = subprocess.Popen(cmd, env=os.environ | overrides, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    operator = OperatorBot(url, token) if bot else None
+    stop = threading.Event()
+    try:
+        _wait_ready(url, proc, timeout=300)
+        started = time.monotonic()
+        thread = None
+        if operator is not None:
+            thread = threading.Thread(target=operator.run, kwargs={"stop": stop.is_set}, daemon=True)
+            thread.start()
+        with tqdm(total=int(seconds), desc=f"loop ({mode})", unit="s", disable=not progress) as bar:
+            while (elapsed := time.monotonic() - started) < seconds:
+                time.sleep(min(1.0, seconds - elapsed))
+                bar.n = int(time.monotonic() - started)
+                bar.refresh()
+        stop.set()
+        if thread is not None:
+            thread.join(timeout=30)
+    finally:
+        stop.set()
+        proc.terminate()
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        if operator is not None:
+            operator.close()
+    return _report(sessions, settings, seconds, mode, operator)
+
+
+def _report(sessions, settings: Settings, seconds: float, mode: str, bot: OperatorBot | None) -> dict:
+    """What the run's database holds: episodes that ended on their own, per task, and the takeovers."""
+    with sessions() as s:
+        episodes = list(s.scalars(select(EpisodeRecord)))
+        segments = list(s.scalars(select(SegmentRecord)))
+    keys = ("episodes", "successes", "events", "assisted_steps", "unassisted_episodes", "unassisted_successes")
+    per_task: dict[str, dict] = defaultdict(lambda: dict.fromkeys(keys, 0))
+    for e in episodes:
+        if e.outcome not in FINISHED:
+            continue
+        t = per_task[e.task]
+        t["episodes"] += 1
+        t["successes"] += int(e.outcome == "success")
+        t["events"] += e.assistance_events
+        t["assisted_steps"] += e.assisted_steps
+        if e.assistance_events == 0:  # the policy alone: what the signal let go
+            t["unassisted_episodes"] += 1
+            t["unassisted_successes"] += int(e.outcome == "success")
+    takeovers: dict[str, int] = defaultdict(int)
+    ended_by: dict[str, int] = defaultdict(int)
+    asked_by: dict[str, int] = defaultdict(int)  # "watchdog" or the asking signal's name
+    for seg in segments:
+        takeovers[seg.task] += 1
+        ended_by[seg.ended_by or "open"] += 1
+        asked_by[seg.reason.split(":")[0].split(" ")[0]] += 1
+    for task, t in per_task.items():
+        t["success_rate"] = t["successes"] / t["episodes"] if t["episodes"] else None
+        t["takeovers"] = takeovers.get(task, 0)
+    n = sum(t["episodes"] for t in per_task.values())
+    ok = sum(t["successes"] for t in per_task.values())
+    return {
+        "mode": mode,
+        "seconds": seconds,
+        "robots": sum(g.count for g in settings.robots),
+        "episodes": n,
+        "successes": ok,
+        "success_rate": ok / n if n else None,
+        "interrupted": sum(e.outcome not in FINISHED for e in episodes),
+        "per_task": dict(sorted(per_task.items())),
+        "takeovers_ended_by": dict(ended_by),
+        "takeovers_asked_by": dict(asked_by),
+        "bot": None if bot is None else {"takeovers": bot.takeovers, "commands": bot.commands, "errors": bot.errors},
+    }
