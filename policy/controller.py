@@ -91,8 +91,9 @@ class ControllerConfig:
             raise ValueError(f"return_after must be None or an integer >= 1, got {self.return_after!r}")
         if not (isinstance(self.cooldown, int) and not isinstance(self.cooldown, bool) and self.cooldown >= 0):
             raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
-        if self.watchdog is not None and not (isinstance(self.watchdog, int | float) and 0 < self.watchdog <= 1):
-            raise ValueError(f"watchdog must be None or a fraction of the horizon in (0, 1], got {self.watchdog!r}")
+        if self.watchdog is not None and not (isinstance(self.watchdog, int | float) and 0 < self.watchdog < 1):
+            # at the whole horizon the episode is over before the robot could ask
+            raise ValueError(f"watchdog must be None or a fraction of the horizon in (0, 1), got {self.watchdog!r}")
 
     @property
     def calm_steps(self) -> int | None:

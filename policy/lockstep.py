@@ -55,8 +55,10 @@ def run_lockstep(
     desc: str = "",
 ) -> list[Outcome]:
     """One episode per seed; an episode ends as the fleet's do (``ends_episode``): at success or at the
-    task's horizon (hold steps do not count), a timeout waiting for the operator's hand-back, and at the
-    latest after ``OVERTIME`` times the horizon in control steps."""
+    task's horizon (hold steps do not count), a timeout waiting for the operator's hand-back. The
+    simulated operator never leaves, so unlike the fleet (where an unclaimed request or an operator who
+    keeps control holds an episode open), an episode here also stops after ``OVERTIME`` horizons of
+    control steps."""
     if n_envs < 1:
         raise ValueError(f"n_envs must be >= 1, got {n_envs}")
     tasks = [make_task(task_name) for _ in range(min(n_envs, len(seeds)))]

@@ -9,6 +9,7 @@ import hashlib
 import secrets
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 from sqlalchemy import select
@@ -70,25 +71,35 @@ def authenticate(sessions: sessionmaker, token: str | None) -> Principal | None:
 
 class TokenCache:
     """``authenticate`` with answers kept for ``ttl`` seconds, so that polling clients do not cost a
-    database query per request. A revocation (``hitl token revoke``, another process) takes effect
-    within ``ttl``. Unknown tokens are cached too, so a flood of bad tokens does not reach the database."""
+    database query per request. A revocation (``hitl token revoke``, another process) takes effect for
+    new requests within ``ttl``; an open WebSocket was authenticated once, at its handshake. At most
+    ``max_entries`` tokens are kept, least recently used first out; unknown tokens are not cached."""
 
     def __init__(self, sessions: sessionmaker, ttl: float = 5.0, max_entries: int = 10_000) -> None:
         self.sessions, self.ttl, self.max_entries = sessions, ttl, max_entries
-        self._seen: dict[str, tuple[float, Principal | None]] = {}
+        self._seen: OrderedDict[str, tuple[float, Principal]] = OrderedDict()
         self._lock = threading.Lock()
 
-    def authenticate(self, token: str | None) -> Principal | None:
+    def cached(self, token: str | None) -> tuple[bool, Principal | None]:
+        """(known, principal) without touching the database: known is False when ``authenticate`` must
+        ask it."""
         if not token:
-            return None
-        key, now = hash_token(token), time.monotonic()
+            return True, None
+        key = hash_token(token)
         with self._lock:
             hit = self._seen.get(key)
-        if hit is not None and now - hit[0] < self.ttl:
-            return hit[1]
+            if hit is None or time.monotonic() - hit[0] >= self.ttl:
+                return False, None
+            self._seen.move_to_end(key)
+            return True, hit[1]
+
+    def authenticate(self, token: str | None) -> Principal | None:
+        """Asks the database (blocking) and remembers a valid token's principal."""
         principal = authenticate(self.sessions, token)
-        with self._lock:
-            if len(self._seen) >= self.max_entries:
-                self._seen.clear()
-            self._seen[key] = (now, principal)
+        if principal is not None:
+            with self._lock:
+                self._seen[hash_token(token)] = (time.monotonic(), principal)
+                self._seen.move_to_end(hash_token(token))
+                while len(self._seen) > self.max_entries:
+                    self._seen.popitem(last=False)
         return principal

@@ -16,6 +16,7 @@ import tempfile
 import threading
 import time
 from collections import defaultdict
+from datetime import UTC, datetime
 from pathlib import Path
 
 import httpx
@@ -75,6 +76,7 @@ def run_loop(
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
     cmd = [sys.executable, "-m", "hitl.cli", "serve", "--config", str(config), "--port", str(port)]
+    since = datetime.now(UTC)  # only this run's episodes and takeovers are reported (the folder may be reused)
     proc = subprocess.Popen(cmd, env=os.environ | overrides, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     operator = OperatorBot(url, token) if bot else None
     stop = threading.Event()
@@ -102,14 +104,18 @@ def run_loop(
             proc.kill()
         if operator is not None:
             operator.close()
-    return _report(sessions, settings, seconds, mode, operator)
+    return _report(sessions, settings, seconds, mode, operator, since)
 
 
-def _report(sessions, settings: Settings, seconds: float, mode: str, bot: OperatorBot | None) -> dict:
-    """What the run's database holds: episodes that ended on their own, per task, and the takeovers."""
+def _report(
+    sessions, settings: Settings, seconds: float, mode: str, bot: OperatorBot | None, since: datetime | None = None
+) -> dict:
+    """What the database holds of the run (episodes started ``since``): episodes that ended on their own,
+    per task, and the takeovers."""
+    since = since or datetime.min.replace(tzinfo=UTC)
     with sessions() as s:
-        episodes = list(s.scalars(select(EpisodeRecord)))
-        segments = list(s.scalars(select(SegmentRecord)))
+        episodes = list(s.scalars(select(EpisodeRecord).where(EpisodeRecord.started_at >= since)))
+        segments = list(s.scalars(select(SegmentRecord).where(SegmentRecord.started_at >= since)))
     keys = ("episodes", "successes", "events", "assisted_steps", "unassisted_episodes", "unassisted_successes")
     per_task: dict[str, dict] = defaultdict(lambda: dict.fromkeys(keys, 0))
     for e in episodes:

@@ -18,7 +18,6 @@ episode finishes it on the version it started with.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import threading
 import time
@@ -137,9 +136,7 @@ class Fleet:
         """The episode ended on its own: success, or the horizon (never under an operator's hands)."""
         outcome = "success" if frame.success else "timeout"
         self.recorder.close_episode_file(robot, frame.success, frame.t, outcome)
-        if robot.segment is not None:  # a takeover that reached success (a timeout waits for the hand-back)
-            self._end_takeover(robot, "episode-ended")
-        self.queue.close(robot.id)
+        self._end_takeover(robot, "episode-ended")  # a takeover that reached success (a timeout waits for hand-back)
         robot.mode = "done" if robot.mode != "paused" else "paused"
         robot.episodes_done += 1
         robot.successes += int(frame.success)
@@ -149,10 +146,9 @@ class Fleet:
     def _interrupt(self, robot: Robot, outcome: str, ended_by: str) -> None:
         """Ends the episode early (fault, reset, shutdown): files and rows closed, request dropped.
         ended_by: why, for a takeover in progress (``db.SEGMENT_ENDS``)."""
-        self.recorder.close_segment(robot, ended_by)
+        self._end_takeover(robot, ended_by)
         self.recorder.close_episode_file(robot, None, robot.steps, outcome)
         self.recorder.finish_episode(robot, outcome)
-        self.queue.close(robot.id)
         robot.commands.clear()
 
     def _fault(self, robot: Robot, why: str) -> None:
@@ -223,6 +219,8 @@ class Fleet:
                 robot.fault, robot.restart_at, robot.mode = None, None, "autonomous"
                 self._spawn(robot)
             return
+        if robot.worker is None:
+            return
         try:
             frame = robot.worker.poll()
         except WorkerFault as exc:
@@ -245,12 +243,14 @@ class Fleet:
             if req.expired_holder and req.claimed_at is not None:
                 self._add_busy(req.expired_holder, time.monotonic() - req.claimed_at)
             robot = self.robots.get(req.robot_id)
-            if robot is not None and robot.mode == "teleop" and robot.frame is not None:
+            if robot is None:
+                continue
+            self.recorder.close_segment(robot, "lease-expired")  # paused or not: the takeover is over
+            robot.commands.clear()
+            if robot.mode == "teleop" and robot.frame is not None:
                 # (past the horizon, the next frame ends the episode: a timeout waited for this)
                 robot.slot.controller.ask(robot.id, robot.frame.hold)
                 robot.mode = "waiting"
-                robot.commands.clear()
-                self.recorder.close_segment(robot, "lease-expired")
         for r in self.robots.values():
             if r.segment is not None:  # nothing older than a second is only in memory
                 r.segment.maybe_flush()
@@ -283,6 +283,10 @@ class Fleet:
         steps = slot.controller.step(frames, commands, send)
         for r in robots:
             r.fresh = False
+            if r.fault_pending is not None:  # its worker died while the step was being sent
+                why, r.fault_pending = r.fault_pending, None
+                self._fault(r, why)
+                continue
             self._after_step(r, steps[r.id])
 
     def _after_step(self, robot: Robot, step: RobotStep) -> None:
@@ -310,8 +314,8 @@ class Fleet:
         hold = source == keys.SOURCE_HOLD  # holding for an operator does not use up the episode
         try:
             robot.worker.request_step(action, hold)
-        except WorkerFault as exc:
-            self._fault(robot, str(exc))
+        except WorkerFault as exc:  # faulted once the controller's step is over, not in the middle of it
+            robot.fault_pending = str(exc)
             return
         robot.steps += 0 if hold else 1
         self.env_steps += 1
@@ -377,6 +381,12 @@ class Fleet:
             robot = self.robot(robot_id)
             req = self.queue.claim(robot_id, operator)
             self.operator_since.setdefault(operator, time.monotonic())
+            if robot.segment is not None and robot.segment.meta.get("operator") != operator:
+                # the previous holder's lease ran out before a tick expired it: their takeover is over
+                self.recorder.close_segment(robot, "lease-expired")
+                robot.commands.clear()
+                if robot.mode == "teleop":
+                    self.recorder.open_segment(robot, operator, req.reason)
             if robot.mode == "waiting":
                 robot.slot.controller.take_over(robot.id)
                 robot.mode = "teleop"
@@ -408,8 +418,14 @@ class Fleet:
             raise ServiceError(409, f"robot {robot_id} is {robot.mode}, not under teleop")
         self.queue.check_holder(robot_id, operator)
         pending = robot.commands.put(command)
-        with contextlib.suppress(ServiceError):  # control went back in between: the command is still counted
+        try:  # renews the lease, and sees whether control went back while the command was being put
             self.queue.heartbeat(robot_id, operator)
+        except ServiceError:
+            robot.commands.clear()  # nothing in the mailbox of a robot not under teleop is ever applied
+            raise
+        if robot.mode != "teleop":
+            robot.commands.clear()
+            raise ServiceError(409, f"robot {robot_id} is {robot.mode}, not under teleop")
         return pending
 
     def pause(self, robot_id: int) -> None:

@@ -90,24 +90,30 @@ class OperatorBot:
             expert = make_expert(task.name)
             expert.resume(task, np.random.default_rng([seed, robot_id]))  # pick up where the scene stands
             last_beat = time.monotonic()
+            body = None  # a command refused with 429 is sent again, not recomputed (the expert has a state)
             while steps < max_steps:
                 detail = self._get(f"/robots/{robot_id}")
+                if detail["mode"] == "paused":  # an admin stopped it: let someone else have it later
+                    self.client.post(f"{self.api}/robots/{robot_id}/release")
+                    break
                 if detail["mode"] != "teleop":
                     break
-                task.update(self._get(f"/robots/{robot_id}/view"))
-                cmd = expert.act(task).clamped(LIMITS)  # send what the robot will execute
-                body = {
-                    "delta_pos": [float(x) for x in cmd.delta_pos],
-                    "delta_rot": [float(x) for x in cmd.delta_rot],
-                    "gripper": float(cmd.gripper),
-                }
+                if body is None:
+                    task.update(self._get(f"/robots/{robot_id}/view"))
+                    cmd = expert.act(task).clamped(LIMITS)  # send what the robot will execute
+                    body = {
+                        "delta_pos": [float(x) for x in cmd.delta_pos],
+                        "delta_rot": [float(x) for x in cmd.delta_rot],
+                        "gripper": float(cmd.gripper),
+                    }
                 r = self.client.post(f"{self.api}/robots/{robot_id}/command", json=body)
                 if r.status_code in (404, 409):  # lease lost, control handed back, episode over
                     break
-                if r.status_code == 429:  # the next step is full: let a tick apply it
+                if r.status_code == 429:  # the next step is full: let a tick apply it, then send it again
                     time.sleep(0.02)
                     continue
                 r.raise_for_status()
+                body = None
                 self.commands += 1
                 steps += 1
                 self._wait_applied(robot_id, detail["assisted_steps"])

@@ -60,6 +60,7 @@ class Robot:
     restarts: int = 0
     restart_at: float | None = None
     fault: str | None = None
+    fault_pending: str | None = None  # a worker fault seen while the controller was stepping: applied after it
     paused_from: str | None = None
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))  # command arrival -> sent (s)
     action_periods: deque = field(default_factory=lambda: deque(maxlen=1000))  # seconds between actions sent

@@ -67,7 +67,7 @@ class Settings(BaseSettings):
     watchdog: float | None = Field(
         None,
         gt=0,
-        le=1,
+        lt=1,
         description="a robot that has used this fraction of its episode's horizon without success asks for help "
         "once, whatever its signal says (unset: only the signal asks)",
     )

@@ -294,8 +294,8 @@ def _decode(path: Path, messages) -> Episode:
             dtype=np.float64,
         )
         n = len(steps)
-        obs = obs.reshape(n, -1)
-        actions = actions.reshape(n, -1)
+        obs = obs.reshape(n, -1) if n else np.zeros((0, 0))  # cut off before the first step was flushed
+        actions = actions.reshape(n, -1) if n else np.zeros((0, 10))
         ee = ee.reshape(n, 7)
     except (KeyError, TypeError, ValueError) as exc:
         raise EpisodeReadError(path, f"malformed {keys.TOPIC_STEP} messages: {exc}") from exc

@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 
 from mcap.reader import NonSeekingReader, make_reader
-from mcap.records import Channel, Message, Metadata, Schema
+from mcap.records import Channel, DataEnd, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
@@ -95,11 +95,27 @@ def rebuild(path: Path, append: dict[str, dict] | None = None) -> tuple[int, str
     with open(path, "rb") as f:
         try:
             for record in StreamReader(f, validate_crcs=True).records:
+                if isinstance(record, DataEnd):  # the summary that follows repeats schemas and channels
+                    break
                 if isinstance(record, Schema | Channel | Message | Metadata):
                     records.append(record)
         except Exception as exc:  # noqa: BLE001 - any decode failure marks the truncation point
             why = f"{type(exc).__name__}: {exc}"
     tmp = path.with_name(path.name + ".rebuild")
+    try:
+        kept = _write_rebuilt(path, tmp, records, append)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    directory = os.open(path.parent, os.O_RDONLY)  # the rename itself survives a power loss
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+    return kept - len(append or {}), why
+
+
+def _write_rebuilt(path: Path, tmp: Path, records: list, append: dict[str, dict] | None) -> int:
     kept, last_ns, topics = 0, 0, {}
     with open(tmp, "wb") as out:
         writer = Writer(out, compression=CompressionType.ZSTD)
@@ -128,5 +144,4 @@ def rebuild(path: Path, append: dict[str, dict] | None = None) -> tuple[int, str
         writer.finish()
         out.flush()
         os.fsync(out.fileno())
-    os.replace(tmp, path)
-    return kept - len(append or {}), why
+    return kept

@@ -189,7 +189,9 @@ def recover_segment(path: str | Path) -> int:
         raise SegmentReadError(path, f"unreadable ({type(exc).__name__}: {exc})") from exc
     if seg.end is not None and not seg.recovered:
         return len(seg.steps)  # already complete
-    rebuild(path, {keys.TOPIC_TAKEOVER_END: end_message("recovered", "crash-recovered", len(seg.steps))})
+    # a file that lost only its footer already has its end message: it is indexed, not given a second one
+    end = None if seg.end is not None else end_message("recovered", "crash-recovered", len(seg.steps))
+    rebuild(path, {keys.TOPIC_TAKEOVER_END: end} if end is not None else None)
     return len(seg.steps)
 
 

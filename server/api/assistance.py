@@ -117,7 +117,7 @@ async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
     stays open; an unknown robot gets a 404 error message and the close code 4404.
     """
     fleet: Fleet = websocket.app.state.fleet
-    principal = websocket_principal(websocket, "viewer")
+    principal = await websocket_principal(websocket, "viewer")
     if principal is None:
         await websocket.send_denial_response(JSONResponse({"detail": "missing or invalid API token"}, status_code=401))
         return

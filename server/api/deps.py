@@ -1,18 +1,19 @@
 """Dependencies: the services built in the lifespan, and token authentication by role.
 
 ``get_fleet`` and the role check are ``async``: they run on the event loop instead of costing a
-threadpool hop per request, and the token check reads the lifespan's ``TokenCache`` (a database query
-only on a miss, once per token per few seconds)."""
+threadpool hop per request, and the token check reads the lifespan's ``TokenCache`` (a database query,
+in the threadpool, only on a miss: once per token per few seconds)."""
 
 from __future__ import annotations
 
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, WebSocket, status
+from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import sessionmaker
 
-from server.auth import Principal
+from server.auth import Principal, TokenCache
 from server.fleet import Fleet
 
 _bearer = HTTPBearer(auto_error=False)
@@ -30,8 +31,14 @@ FleetDep = Annotated[Fleet, Depends(get_fleet)]
 SessionsDep = Annotated[sessionmaker, Depends(get_sessions)]
 
 
-def _principal(request: Request, creds: HTTPAuthorizationCredentials | None) -> Principal:
-    principal = request.app.state.tokens.authenticate(creds.credentials if creds else None)
+async def _lookup(cache: TokenCache, token: str | None) -> Principal | None:
+    """The cached answer, or the database's, asked from the threadpool: never a query on the event loop."""
+    known, principal = cache.cached(token)
+    return principal if known else await run_in_threadpool(cache.authenticate, token)
+
+
+async def _principal(request: Request, creds: HTTPAuthorizationCredentials | None) -> Principal:
+    principal = await _lookup(request.app.state.tokens, creds.credentials if creds else None)
     if principal is None:
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED, "missing or invalid API token", headers={"WWW-Authenticate": "Bearer"}
@@ -43,7 +50,7 @@ def require(role: str):
     async def dependency(
         request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
     ) -> Principal:
-        principal = _principal(request, creds)
+        principal = await _principal(request, creds)
         if not principal.has(role):
             raise HTTPException(
                 status.HTTP_403_FORBIDDEN, f"this needs the {role} role; your token is {principal.role}"
@@ -59,10 +66,10 @@ Operator = Annotated[Principal, Depends(require("operator"))]
 Admin = Annotated[Principal, Depends(require("admin"))]
 
 
-def websocket_principal(websocket: WebSocket, role: str) -> Principal | None:
+async def websocket_principal(websocket: WebSocket, role: str) -> Principal | None:
     """Token from ``Authorization: Bearer`` or the ``token`` query parameter; None if not allowed."""
     header = websocket.headers.get("authorization", "")
     token = header.removeprefix("Bearer ").strip() if header.startswith("Bearer ") else None
     token = token or websocket.query_params.get("token")
-    principal = websocket.app.state.tokens.authenticate(token)
+    principal = await _lookup(websocket.app.state.tokens, token)
     return principal if principal is not None and principal.has(role) else None

@@ -308,3 +308,41 @@ def test_an_accepted_command_renews_the_lease(tmp_path):
     time.sleep(0.4)  # then silence: the lease runs out
     fleet.tick()
     assert fleet.view(0).mode == "waiting" and fleet.queue.get(0).holder is None
+
+
+def test_a_worker_that_dies_while_a_step_is_sent_faults_alone_and_the_fleet_runs_on(tmp_path):
+    from server.workers import WorkerFault
+
+    fleet, workers = _fleet(tmp_path, threshold=1e9, count=2, cooldown_steps=0)
+    fleet.tick()
+
+    def dead(action, hold=False):
+        raise WorkerFault("worker pipe broke: gone")
+
+    workers[0].request_step = dead
+    for _ in range(3):
+        fleet.tick()  # no tick fails: robot 0 faults, robot 1 keeps stepping
+    assert fleet.view(0).mode == "faulted" and fleet.robots[0].worker is None
+    steps = fleet.view(1).frame.t
+    fleet.tick()
+    assert fleet.view(1).mode == "autonomous" and fleet.view(1).frame.t == steps + 1
+
+
+def test_a_lease_that_runs_out_while_paused_ends_that_takeover(tmp_path):
+    import time
+
+    fleet, _ = _fleet(tmp_path, lease_seconds=0.05, trigger_mode="continuous")
+    fleet.tick()
+    fleet.claim(0, "alice")
+    fleet.command(0, "alice", UP)
+    fleet.tick()
+    fleet.pause(0)
+    time.sleep(0.1)
+    fleet.tick()  # the lease ran out while the robot was paused
+    fleet.resume(0)
+    assert fleet.view(0).mode == "waiting"
+    fleet.claim(0, "bob")
+    fleet.command(0, "bob", UP)
+    fleet.tick()
+    rows = _segments(fleet)
+    assert [(r.operator, r.ended_by) for r in rows] == [("alice", "lease-expired"), ("bob", None)]
