@@ -129,16 +129,18 @@ def _report(
         if e.assistance_events == 0:  # the policy alone: what the signal let go
             t["unassisted_episodes"] += 1
             t["unassisted_successes"] += int(e.outcome == "success")
-    takeovers: dict[str, int] = defaultdict(int)
     ended_by: dict[str, int] = defaultdict(int)
     asked_by: dict[str, int] = defaultdict(int)  # "watchdog" or the asking signal's name
+    task_asked_by: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     for seg in segments:
-        takeovers[seg.task] += 1
         ended_by[seg.ended_by or "open"] += 1
-        asked_by[seg.reason.split(":")[0].split(" ")[0]] += 1
+        who = seg.reason.split(":")[0].split(" ")[0]
+        asked_by[who] += 1
+        task_asked_by[seg.task][who] += 1
     for task, t in per_task.items():
         t["success_rate"] = t["successes"] / t["episodes"] if t["episodes"] else None
-        t["takeovers"] = takeovers.get(task, 0)
+        t["takeovers"] = sum(task_asked_by[task].values())
+        t["takeovers_asked_by"] = dict(task_asked_by[task])
     n = sum(t["episodes"] for t in per_task.values())
     ok = sum(t["successes"] for t in per_task.values())
     return {

@@ -148,6 +148,7 @@ class Task(ABC):
     def __init__(self) -> None:
         self._env = None
         self._t = 0
+        self._clock = 0
         self._seed: int | None = None
         self._gripper = -1.0  # the gripper command in force (our convention: -1 open, +1 closed)
 
