@@ -34,24 +34,27 @@ lint: install
 docs: install
 	$(BIN)/hitl experts --episodes 50 --out docs/experts.md
 
-# Regenerates docs/sanity-*.md, docs/figures/ and docs/bench-uncertainty.json from scratch:
-# demonstrations, three policies, calibration, rollouts, figures and the benchmark (about 1.5 h on 2 cores).
+# Regenerates docs/sanity.md, docs/separation-lift.json, docs/figures/ and docs/bench-uncertainty.json from
+# scratch: demonstrations, three policies, calibration (with its rollout check), the sanity checks, the
+# signals' separation of shifted states, figures and the benchmark (about 2 h on 2 cores).
 policy-docs: install
 	$(BIN)/hitl demos --task lift-cube --episodes 200 --pos-noise 0.01 --rot-noise 0.15 --out data/demos/lift-cube-dart --quiet
-	$(BIN)/hitl demos --task cup-stack --episodes 200 --out data/demos/cup-stack --quiet
+	$(BIN)/hitl demos --task cup-stack --episodes 200 --pos-noise 0.01 --rot-noise 0.15 --out data/demos/cup-stack-dart --quiet
 	$(BIN)/hitl demos --task open-drawer --episodes 300 --pos-noise 0.01 --rot-noise 0.15 --out data/demos/open-drawer-dart --quiet
 	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart --out runs/lift-cube --threads 1
-	$(BIN)/hitl train --task cup-stack --data data/demos/cup-stack --out runs/cup-stack --obs-encoder-dims --threads 1
+	$(BIN)/hitl train --task cup-stack --data data/demos/cup-stack-dart --out runs/cup-stack --threads 1
 	$(BIN)/hitl train --task open-drawer --data data/demos/open-drawer-dart --out runs/open-drawer --threads 1
 	$(BIN)/hitl calibrate --policy runs/lift-cube --data data/demos/lift-cube-dart
-	$(BIN)/hitl calibrate --policy runs/cup-stack --data data/demos/cup-stack
+	$(BIN)/hitl calibrate --policy runs/cup-stack --data data/demos/cup-stack-dart
 	$(BIN)/hitl calibrate --policy runs/open-drawer --data data/demos/open-drawer-dart
-	$(BIN)/hitl report sanity --lift runs/lift-cube --out docs/sanity-lift.md
-	$(BIN)/hitl report sanity --cup runs/cup-stack --drawer runs/open-drawer --out docs/sanity-cup-drawer.md
+	$(BIN)/hitl report sanity --lift runs/lift-cube --cup runs/cup-stack --drawer runs/open-drawer --out docs/sanity.md
+	for s in output-variance diff-dagger thrifty hula-offline; do $(BIN)/hitl train-signal --policy runs/lift-cube --signal $$s --data data/demos/lift-cube-dart --quiet || exit 1; done
+	$(BIN)/hitl report separation --policy runs/lift-cube --out docs/separation-lift.json
 	$(BIN)/hitl plot uncertainty --policy runs/lift-cube --task lift-hammer --episodes 8 --out docs/figures
 	$(BIN)/hitl plot uncertainty --policy runs/cup-stack --task cup-stack --episodes 4 --out docs/figures
 	$(BIN)/hitl plot uncertainty --policy runs/open-drawer --task open-drawer --episodes 8 --out docs/figures
 	$(BIN)/hitl bench uncertainty --policy runs/lift-cube --task lift-hammer > docs/bench-uncertainty.json
+	for p in lift-cube cup-stack open-drawer; do rm -rf policies/$$p && mkdir -p policies/$$p && cp runs/$$p/model.safetensors runs/$$p/config.json runs/$$p/calibration.json policies/$$p/ || exit 1; done
 
 # Regenerates docs/signals.md's inputs: every assistance signal trained and calibrated next to the
 # lift policy (and a chunked lift policy for stac), their cost, and an assisted comparison run.

@@ -21,8 +21,11 @@ from pathlib import Path
 
 
 def _cmd_tasks(args: argparse.Namespace) -> int:
+    from policy.uncertainty import UncertaintyConfig
     from sim.registry import TASKS, make_task
     from sim.spaces import ACTION_LABELS
+
+    radius = UncertaintyConfig().radius
 
     rows = []
     for name in TASKS:
@@ -40,6 +43,7 @@ def _cmd_tasks(args: argparse.Namespace) -> int:
                     "workspace_low": list(task.action_space.pos_low),
                     "workspace_high": list(task.action_space.pos_high),
                 },
+                "probe_radius": task.action_space.radius_in_units(radius),
             }
         )
     if args.json:
@@ -52,6 +56,11 @@ def _cmd_tasks(args: argparse.Namespace) -> int:
         print(
             f"{'':12} action[{r['action']['dim']}]: pos(3) rot6d(6) gripper(1), workspace "
             f"{r['action']['workspace_low']} .. {r['action']['workspace_high']}"
+        )
+        pr = r["probe_radius"]
+        cm = " / ".join(f"{v:g}" for v in pr["position_cm"])
+        print(
+            f"{'':12} probe radius r={pr['r']:g}: {cm} cm (x / y / z), rot6d {pr['rot6d']:g}, gripper {pr['gripper']:g}"
         )
     return 0
 

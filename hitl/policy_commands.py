@@ -38,7 +38,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
         down_dims=tuple(args.down_dims),
         num_inference_steps=args.ddim_steps,
         obs_encoder_dims=tuple(args.obs_encoder_dims),
-        obs_fourier_octaves=args.obs_fourier_octaves,
+        obs_fourier_octaves=(4 if args.obs_encoder_dims else 0)
+        if args.obs_fourier_octaves is None
+        else args.obs_fourier_octaves,
     )
     if args.symmetry_augment and task.symmetry_order < 2:
         raise ValueError(f"--symmetry-augment: task {args.task} has no scene symmetry to augment with")
@@ -54,7 +56,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     policy = DiffusionPolicy(cfg)
     # normalizer statistics come from the training episodes only
     train_idx = ds.sample_index(train_ep)
-    policy.fit_normalizers(ds.obs[train_idx[:, 0]], ds.actions[train_idx[:, 0]])
+    # actions: over the task's workspace and the natural [-1, 1] of rotation and gripper
+    bounds = (task.action_space.low, task.action_space.high)
+    policy.fit_normalizers(ds.obs[train_idx[:, 0]], ds.actions[train_idx[:, 0]], action_bounds=bounds)
     ema, history = train_policy(
         policy,
         ds.arrays("train"),
@@ -76,6 +80,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
             "val_fraction": ds.config.val_fraction,
             "steps": int(len(ds.obs)),
             "excluded": ds.excluded,
+        },
+        "normalized_over": {  # the bounds themselves are in "normalization"
+            "observation": "the training data's min/max per dimension",
+            "action": f"the {args.task} workspace (position) and [-1, 1] (6D rotation, gripper)",
         },
         "training": {
             **tcfg.to_dict(),
@@ -174,24 +182,70 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     return 0
 
 
+def _int_at_least(low: int):
+    """An argparse type: an integer >= low, with a clear message otherwise."""
+
+    def parse(text: str) -> int:
+        value = int(text)
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
+        return value
+
+    parse.__name__ = "integer"  # argparse names the type in "invalid integer value: ..."
+    return parse
+
+
+_non_negative_int, _positive_int = _int_at_least(0), _int_at_least(1)
+
+
+def _set_threads(args: argparse.Namespace) -> None:
+    if getattr(args, "threads", None):
+        import torch
+
+        torch.set_num_threads(args.threads)
+
+
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from policy.calibrate import calibrate
+    _set_threads(args)
+    from policy.calibrate import calibrate, rollout_check
     from policy.checkpoint import load_policy, save_calibration
 
     policy, info = load_policy(args.policy)
-    record = calibrate(policy, info, args.data, args.quantile, _uncertainty_config(args), progress=not args.quiet)
-    path = save_calibration(args.policy, record)
-    print(
-        json.dumps(
-            {
-                "threshold": record["threshold"],
-                "quantile": record["quantile"],
-                "samples": record["samples"],
-                "episodes": len(record["episodes"]),
-                "saved": str(path),
-            }
+    config = _uncertainty_config(args)
+    task = args.task or info.get("task")
+    if args.rollouts and not task:
+        raise ValueError(f"{args.policy}/config.json names no task: pass --task for the rollout check")
+    record = calibrate(policy, info, args.data, args.quantile, config, progress=not args.quiet)
+    if args.rollouts:
+        record["rollout_check"] = rollout_check(
+            policy,
+            task,
+            record["threshold"],
+            config,
+            episodes=args.rollouts,
+            seed=args.rollout_seed,
+            progress=not args.quiet,
         )
-    )
+    path = save_calibration(args.policy, record)
+    out = {
+        "threshold": record["threshold"],
+        "quantile": record["quantile"],
+        "samples": record["samples"],
+        "episodes": len(record["episodes"]),
+        "validation_share_above": record["validation_share_above"],
+        "saved": str(path),
+    }
+    check = record.get("rollout_check")
+    if check:
+        out["rollout_check"] = check
+        if check["flagged"]:
+            print(
+                f"hitl calibrate: calibration problem: {check['share_above']:.0%} of the steps of "
+                f"{check['episodes']} autonomous {check['task']} rollouts are above the threshold "
+                f"(validation: {record['validation_share_above']:.0%}; flagged above {check['flag_share']:.0%})",
+                file=sys.stderr,
+            )
+    print(json.dumps(out))
     return 0
 
 
@@ -306,6 +360,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
+    _set_threads(args)
     from policy.report import sanity_report
 
     episodes = {
@@ -321,6 +376,30 @@ def _cmd_report(args: argparse.Namespace) -> int:
         Path(args.out).write_text(text)
         Path(args.out).with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
     print(text)
+    return 0
+
+
+def _cmd_separation(args: argparse.Namespace) -> int:
+    _set_threads(args)
+    from policy.checkpoint import load_policy
+    from policy.separation import shift_separation
+
+    policy, info = load_policy(args.policy)
+    report = shift_separation(
+        policy,
+        args.policy,
+        args.in_task or info["task"],
+        args.shift_tasks,
+        args.episodes,
+        args.seed,
+        args.signals,
+        progress=not args.quiet,
+    )
+    doc = {"command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]), **report.to_dict()}
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(doc, indent=2) + "\n")
+    print(report.markdown())
     return 0
 
 
@@ -345,8 +424,9 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     p.add_argument(
         "--obs-fourier-octaves",
         type=int,
-        default=0,
-        help="feed the observation encoder sin/cos of each observation at this many octave frequencies",
+        default=None,
+        help="feed the observation encoder sin/cos of each observation at this many octave frequencies "
+        "(default 4 with an observation encoder, 0 without; 0 turns them off)",
     )
     p.add_argument(
         "--symmetry-augment",
@@ -374,6 +454,15 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     p.add_argument("--policy", required=True, type=Path)
     p.add_argument("--data", required=True, type=Path, help="the folder the policy was trained from")
     p.add_argument("--quantile", type=float, default=0.95)
+    p.add_argument(
+        "--rollouts",
+        type=_non_negative_int,
+        default=10,
+        help="autonomous rollouts on which to measure the share of steps above the threshold (0: none)",
+    )
+    p.add_argument("--rollout-seed", type=int, default=3000, help="first seed of those rollouts")
+    p.add_argument("--task", default=None, help="task of those rollouts (default: the policy's training task)")
+    p.add_argument("--threads", type=_positive_int, default=None, help="torch CPU threads (default: all)")
     p.add_argument("--quiet", action="store_true")
     _add_uncertainty_args(p)
     p.set_defaults(func=_cmd_calibrate)
@@ -398,14 +487,26 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     q.add_argument("--lift", type=Path, help="lift-cube policy folder")
     q.add_argument("--cup", type=Path, help="cup-stack policy folder")
     q.add_argument("--drawer", type=Path, help="open-drawer policy folder")
-    q.add_argument("--episodes-lift", type=int, default=50)
-    q.add_argument("--episodes-other", type=int, default=20)
-    q.add_argument("--episodes-cup", type=int, default=20)
-    q.add_argument("--episodes-drawer", type=int, default=30)
+    q.add_argument("--episodes-lift", type=_positive_int, default=50)
+    q.add_argument("--episodes-other", type=_positive_int, default=50, help="per unseen lift object")
+    q.add_argument("--episodes-cup", type=_positive_int, default=50)
+    q.add_argument("--episodes-drawer", type=_positive_int, default=50)
     q.add_argument("--seed", type=int, default=1000)
     q.add_argument("--out", type=Path, help="markdown file (a .json with the numbers is written beside it)")
+    q.add_argument("--threads", type=_positive_int, default=None, help="torch CPU threads (default: all)")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_report)
+    q = what.add_parser("separation", help="AUROC of every signal for shifted vs training-distribution states")
+    q.add_argument("--policy", required=True, type=Path)
+    q.add_argument("--in-task", default=None, help="training-distribution task (default: the policy's)")
+    q.add_argument("--shift-tasks", nargs="+", default=["lift-nut", "lift-hammer", "lift-hook"])
+    q.add_argument("--episodes", type=_positive_int, default=8, help="rollouts per task")
+    q.add_argument("--seed", type=int, default=1000)
+    q.add_argument("--signals", nargs="+", default=None, help="default: every registered signal")
+    q.add_argument("--out", type=Path, help="JSON file to write (the markdown table is printed)")
+    q.add_argument("--threads", type=_positive_int, default=None, help="torch CPU threads (default: all)")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_separation)
 
     p = sub.add_parser("bench", help="speed measurements, printed as JSON")
     what = p.add_subparsers(dest="target", required=True)

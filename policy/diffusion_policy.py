@@ -83,10 +83,27 @@ class DiffusionPolicy(nn.Module):
         self._action_queue: deque[torch.Tensor] = deque()
 
     # -- statistics --------------------------------------------------------------
-    def fit_normalizers(self, obs: np.ndarray, actions: np.ndarray) -> None:
-        """obs: (..., obs_dim), actions: (..., action_dim) raw training data."""
+    def fit_normalizers(
+        self, obs: np.ndarray, actions: np.ndarray, action_bounds: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> None:
+        """obs: (..., obs_dim), actions: (..., action_dim) raw training data.
+
+        action_bounds: (low, high) (action_dim,) fixed bounds for the action space (a task's
+        ``ActionSpace.low`` / ``high``): the actions are normalized over them, not over the data, and
+        every training action must lie inside. Without them the data's own min/max is used."""
         self.obs_normalizer.fit(obs)
-        self.action_normalizer.fit(actions)
+        if action_bounds is None:
+            self.action_normalizer.fit(actions)
+            return
+        low, high = (np.asarray(b, dtype=np.float64) for b in action_bounds)
+        flat = np.asarray(actions, dtype=np.float64).reshape(-1, self.config.action_dim)
+        outside = (flat < low - 1e-6) | (flat > high + 1e-6)
+        if outside.any():
+            dims = sorted({int(i) for i in np.flatnonzero(outside.any(0))})
+            raise ValueError(
+                f"{int(outside.any(1).sum())} training actions lie outside the action bounds in dims {dims}"
+            )
+        self.action_normalizer.set_bounds(low, high)
 
     def normalize_action(self, action: torch.Tensor) -> torch.Tensor:
         return self.action_normalizer.normalize(action)

@@ -1,4 +1,10 @@
-"""Per-dimension min-max normalization to [0, 1], kept as buffers inside the policy."""
+"""Per-dimension min-max normalization to [0, 1], kept as buffers inside the policy.
+
+Observations are normalized over the training data's range (``fit``). Actions are normalized over
+fixed, documented bounds (``set_bounds``): the task's workspace for position and the natural
+[-1, 1] for the 6D rotation and the gripper, so that the uncertainty probe's radius r, which lives
+in this space, means the same distance in every policy and no recorded data can shrink it.
+"""
 
 from __future__ import annotations
 
@@ -27,6 +33,18 @@ class MinMaxNormalizer(nn.Module):
         narrow = span < MIN_SPAN
         self.low.copy_(torch.where(narrow, (lo + hi) / 2 - 0.5 * MIN_SPAN, lo))
         self.span.copy_(torch.where(narrow, torch.full_like(span, MIN_SPAN), span))
+        return self
+
+    def set_bounds(self, low: np.ndarray, high: np.ndarray) -> MinMaxNormalizer:
+        """Fixed bounds: low, high (dim,), high > low everywhere."""
+        lo = torch.as_tensor(np.asarray(low, dtype=np.float64), dtype=torch.float32).reshape(-1)
+        hi = torch.as_tensor(np.asarray(high, dtype=np.float64), dtype=torch.float32).reshape(-1)
+        if lo.shape != self.low.shape or hi.shape != self.low.shape:
+            raise ValueError(f"bounds must have {self.low.numel()} values, got {lo.numel()} and {hi.numel()}")
+        if not (torch.isfinite(lo).all() and torch.isfinite(hi).all() and (hi > lo).all()):
+            raise ValueError("bounds need finite low < high in every dimension")
+        self.low.copy_(lo)
+        self.span.copy_(hi - lo)
         return self
 
     def normalize(self, x: torch.Tensor) -> torch.Tensor:

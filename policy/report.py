@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,37 @@ from policy.evaluate import PolicyEpisode, rollout_policy, summarize
 from policy.uncertainty import UncertaintyConfig
 
 LIFT_TASKS = ("lift-cube", "lift-nut", "lift-hammer", "lift-hook")
+CHANCE = 1 / 3  # three drawers, the intended one not observed
+NEAR_CHANCE = 0.15  # "near chance": within this of 1/3
+
+
+@dataclass(frozen=True)
+class Check:
+    """One of the paper's sanity checks: ``value`` successes of ``n``, against a target share."""
+
+    name: str
+    value: int
+    n: int
+    target: str  # ">= 0.95", "<= 0.10" or "near chance"
+
+    @property
+    def share(self) -> float:
+        return self.value / self.n if self.n else float("nan")
+
+    @property
+    def passed(self) -> bool:
+        if self.target == "near chance":
+            return abs(self.share - CHANCE) <= NEAR_CHANCE
+        op, bound = self.target.split()
+        return self.share >= float(bound) if op == ">=" else self.share <= float(bound)
+
+    def row(self) -> str:
+        target = f"1/3 ± {NEAR_CHANCE:.2f}" if self.target == "near chance" else self.target.replace("0.", ".")
+        mark = "yes" if self.passed else "**no**"
+        return f"| {self.name} | {self.value}/{self.n} ({self.share:.0%}) | {target} | {mark} |"
+
+    def to_dict(self) -> dict:
+        return {"value": self.value, "n": self.n, "share": self.share, "target": self.target, "passed": self.passed}
 
 
 def _run(policy_dir: Path, task: str, episodes: int, seed: int, progress: bool) -> tuple[list[PolicyEpisode], dict]:
@@ -20,7 +52,7 @@ def _run(policy_dir: Path, task: str, episodes: int, seed: int, progress: bool) 
         policy,
         task,
         list(range(seed, seed + episodes)),
-        n_envs=4,
+        n_envs=min(10, episodes),
         uncertainty=UncertaintyConfig(),
         progress=progress,
     )
@@ -54,7 +86,9 @@ def sanity_report(
         "(S = 128, r = 0.05, N = 4, BIC, alpha = 0.1).",
         "",
     ]
+    header = len(lines)
     results: dict = {}
+    checks: list[Check] = []
     if lift:
         lines += [
             "## Lift (distribution shift)",
@@ -68,6 +102,9 @@ def sanity_report(
             n = episodes["lift-cube"] if task == "lift-cube" else episodes["lift-other"]
             eps, s = _run(lift, task, n, seed, progress)
             results[task] = s
+            checks.append(
+                Check(f"`{task}` success", s["successes"], n, ">= 0.95" if task == "lift-cube" else "<= 0.10")
+            )
             u = s.get("uncertainty", {})
             lines.append(
                 f"| `{task}` | {n} | {s['successes']}/{n} ({s['success_rate']:.0%}) | {s['steps']['mean']:.0f} "
@@ -81,6 +118,10 @@ def sanity_report(
         grasped = sum(e.info.get("grasped", False) for e in eps)
         inserted = sum(e.info.get("inserted", False) for e in eps)
         results["cup-stack"] = s | {"grasped": grasped, "inserted": inserted}
+        checks += [
+            Check("`cup-stack` grasp", grasped, n, ">= 0.95"),
+            Check("`cup-stack` insertion, unassisted", inserted, n, "<= 0.10"),
+        ]
         lines += [
             "## Cup stacking (partial observability)",
             "",
@@ -103,6 +144,10 @@ def sanity_report(
             "opened_intended": intended,
             "opened_histogram": {str(k): v for k, v in opened.items()},
         }
+        checks += [
+            Check("`open-drawer` opens some drawer", any_open, n, ">= 0.95"),
+            Check("`open-drawer` opens the intended one", intended, n, "near chance"),
+        ]
         hist = ", ".join(f"drawer {k}: {v}" for k, v in sorted(opened.items(), key=lambda kv: str(kv[0])))
         lines += [
             "## Open drawer (action multi-modality)",
@@ -115,4 +160,14 @@ def sanity_report(
             f"| {_threshold_line(drawer, eps)} |",
             "",
         ]
+    if checks:  # right after the header, before the per-task sections
+        lines[header:header] = [
+            "## The checks",
+            "",
+            "| check | ours | target | met |",
+            "|---|---|---|---|",
+            *(c.row() for c in checks),
+            "",
+        ]
+        results["checks"] = {c.name.replace("`", ""): c.to_dict() for c in checks}
     return "\n".join(lines) + "\n", results

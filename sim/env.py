@@ -311,19 +311,30 @@ class Task(ABC):
         z = TABLE_TOP_Z + 0.5 + (TABLE_TOP_Z + clearance - lowest)
         self.set_free_body(obj, np.array([xy[0], xy[1], z]), quat_xyzw)
 
-    def _lowest_point(self, root_body: int) -> float:
-        """Lowest world z over the bounding boxes of a body's (and its children's) geoms."""
+    def _geom_corners(self, root_body: int) -> np.ndarray:
+        """(8 * G, 3) world corners of the bounding boxes of a body's (and its children's) G geoms."""
         m, d = self.sim.model, self.sim.data
         bodies = {root_body} | {b for b in range(m.nbody) if m.body_rootid[b] == root_body and b != 0}
-        lowest = np.inf
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
-        for g in range(m.ngeom):
-            if m.geom_bodyid[g] not in bodies:
-                continue
-            center, half = m.geom_aabb[g, :3], m.geom_aabb[g, 3:]
-            corners = (center + signs * half) @ d.geom_xmat[g].reshape(3, 3).T + d.geom_xpos[g]
-            lowest = min(lowest, float(corners[:, 2].min()))
-        return lowest
+        corners = [
+            (m.geom_aabb[g, :3] + signs * m.geom_aabb[g, 3:]) @ d.geom_xmat[g].reshape(3, 3).T + d.geom_xpos[g]
+            for g in range(m.ngeom)
+            if m.geom_bodyid[g] in bodies
+        ]
+        return np.concatenate(corners) if corners else np.zeros((0, 3))
+
+    def _lowest_point(self, root_body: int) -> float:
+        """Lowest world z over the bounding boxes of a body's (and its children's) geoms."""
+        corners = self._geom_corners(root_body)
+        return float(corners[:, 2].min()) if len(corners) else np.inf
+
+    def body_extent(self, root_body: int) -> np.ndarray:
+        """(3,) size of a body's (and its children's) geometry along the body's own axes (m): the
+        oriented bounding box a perception stack would report for a rigid object."""
+        corners = self._geom_corners(root_body)
+        d = self.sim.data
+        local = (corners - d.body_xpos[root_body]) @ d.body_xmat[root_body].reshape(3, 3)
+        return local.max(0) - local.min(0)
 
     @abstractmethod
     def object_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:

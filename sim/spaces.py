@@ -8,8 +8,10 @@ Action vector layout (absolute end-effector target in the world frame, 10 dims):
 
 ``ActionSpace`` maps actions to and from a per-dimension [0, 1] normalisation:
 position over the task's workspace bounds, 6D rotation components over
-[-1, 1], gripper over [-1, 1]. The paper's sampling radius r = 0.05 lives in
-this normalised space, so on a 0.6 m workspace it is 3 cm of end-effector motion.
+[-1, 1], gripper over [-1, 1]. Policies normalize their actions over the same
+bounds (``hitl train``), so the paper's sampling radius r = 0.05 lives in this
+space: on a 0.45 m workspace axis it is 2.25 cm of end-effector motion
+(``ActionSpace.radius_in_units``; ``hitl tasks`` prints it per task).
 
 ``TeleopCommand`` is the only way an operator (human or scripted) moves a robot:
 a delta pose and a gripper command, turned into an absolute action from the
@@ -145,6 +147,17 @@ class ActionSpace:
         """(..., 10) values in [0, 1] -> (..., 10) actions."""
         lo, hi = self.low, self.high
         return np.asarray(unit, dtype=np.float64) * (hi - lo) + lo
+
+    def radius_in_units(self, r: float) -> dict[str, object]:
+        """What a radius r in the normalised space spans in each dimension's own units: position in
+        centimetres per axis (x, y, z), and the 6D rotation and gripper components."""
+        span = self.high - self.low
+        return {
+            "r": r,
+            "position_cm": [round(float(v) * r * 100, 2) for v in span[POS]],
+            "rot6d": round(float(span[ROT6D][0]) * r, 4),
+            "gripper": round(float(span[GRIPPER]) * r, 4),
+        }
 
     def make_action(self, pos: np.ndarray, rotmat: np.ndarray, gripper: float) -> np.ndarray:
         return np.concatenate([pos, mat_to_rot6d(rotmat), [gripper]])

@@ -1,9 +1,9 @@
 """Cup stacking: pick the green cup and place it inside the red cup.
 
 Partial observability: once the green cup is carried to within
-``OCCLUSION_RADIUS`` (horizontal distance) of the red cup, the held cup hides
-the red one, as the held cup hides the bottom cup from the cameras in the
-paper's task. While hidden, the red-cup channels read zero and ``red_visible``
+``OCCLUSION_RADIUS`` (15 cm, horizontal distance) of the red cup, the held cup
+and the arm hide the red one, as the held cup hides the bottom cup from the
+cameras in the paper's task. While hidden, the red-cup channels read zero and ``red_visible``
 reads 0: with an observation history of 1 the policy must align the cups
 without seeing the red one, which is where the paper's policy fails. The cups
 start at least ``MIN_CUP_SEPARATION`` apart, so the red cup is always visible
@@ -19,7 +19,10 @@ from sim.objects import CupGeometry, make_cup
 from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
 
-OCCLUSION_RADIUS = 0.10  # metres, horizontal distance green cup centre to red cup centre
+# metres, horizontal distance green cup centre to red cup centre. At 10 cm a policy trained on this
+# observation still inserted 4 of 20 cups unassisted (docs/policy.md); at 15 cm the red cup is hidden
+# for the whole final approach, whose end the insertion needs.
+OCCLUSION_RADIUS = 0.15
 MIN_CUP_SEPARATION = 0.18
 GREEN = CupGeometry(inner_radius=0.022, outer_radius=0.028, height=0.085)
 RED = CupGeometry(inner_radius=0.040, outer_radius=0.047, height=0.045)

@@ -4,6 +4,15 @@
 ``lift-hook`` put robosuite's RoundNut, Hammer and HookFrame in place of the
 cube (distribution shift): the observation layout is identical, so a policy
 trained on the cube runs on them unchanged.
+
+The observation carries the object's geometry the way a perception stack
+would: ``object_extent`` is the size of its oriented bounding box along the
+object's own axes (the axes ``object_rot6d`` gives), with a few millimetres of
+estimation error drawn afresh at every step (seeded by the episode's seed and
+the step), so it is noise to the policy rather than a per-episode constant that
+tells the training episodes apart. A cube-trained policy therefore sees an
+unseen object as new in its input, as the paper's camera-based policy does
+(see docs/policy.md, "What the policies see").
 """
 
 from __future__ import annotations
@@ -18,6 +27,7 @@ from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
 
 LIFT_HEIGHT = 0.04  # success: the object's root is this much above where it rested
+EXTENT_NOISE = 0.002  # m, std of the perceived bounding box's error per axis and step
 LIFT_WORKSPACE = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
 LIFT_OBS = ObsSpec(
     (
@@ -27,6 +37,7 @@ LIFT_OBS = ObsSpec(
         ("object_pos", 3),
         ("object_rot6d", 6),
         ("object_to_eef_pos", 3),
+        ("object_extent", 3),
     )
 )
 
@@ -152,6 +163,11 @@ class LiftTask(Task):
         super()._settle(steps)
         self._rest_z = float(self.sim.data.body_xpos[self._body][2])
         self._max_lift = 0.0
+        self._extent = self.body_extent(self._body)  # rigid: measured once per episode
+
+    def perceived_extent(self) -> np.ndarray:
+        """(3,) the bounding box as perceived at this step: the true one plus seeded noise."""
+        return self._extent + np.random.default_rng([self.seed or 0, 2, self.t]).normal(0.0, EXTENT_NOISE, 3)
 
     def on_step(self) -> None:
         self._max_lift = max(self._max_lift, float(self.sim.data.body_xpos[self._body][2]) - self._rest_z)
@@ -167,7 +183,7 @@ class LiftTask(Task):
     def observe(self) -> np.ndarray:
         pos, quat = self.body_pose(self._body)
         eef = self.robot_obs()
-        return np.concatenate([eef, pos, quat_to_rot6d(quat), pos - eef[0:3]])
+        return np.concatenate([eef, pos, quat_to_rot6d(quat), pos - eef[0:3], self.perceived_extent()])
 
     def check_success(self) -> bool:
         return bool(self.sim.data.body_xpos[self._body][2] > self._rest_z + LIFT_HEIGHT)

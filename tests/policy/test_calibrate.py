@@ -67,3 +67,31 @@ def test_calibration_refuses_unsafe_inputs(tmp_path):
         calibrate(policy, sizes, folder, progress=False)
     with pytest.raises(ValueError, match="quantile"):
         calibrate(policy, info, folder, quantile=1.5, progress=False)
+
+
+def test_validation_share_is_the_quantiles_complement(tmp_path):
+    folder = _episodes(tmp_path / "demos", [20, 22, 24, 26, 28, 30, 32, 34, 36, 38])
+    policy, info, _ = _policy(folder)
+    rec = calibrate(policy, info, folder, 0.9, UncertaintyConfig(num_samples=32), progress=False)
+    assert abs(rec["validation_share_above"] - 0.1) <= 1.5 / rec["samples"] + 1e-9
+
+
+def test_rollout_check_measures_the_share_above_on_autonomous_rollouts():
+    """On the policy's own rollouts through the one controller: every step scored, the share above the
+    threshold counted, and a share over FLAG_SHARE flagged."""
+    from policy.calibrate import FLAG_SHARE, rollout_check
+    from tests.helpers import tiny_policy
+
+    policy = tiny_policy("lift-cube")
+    cfg = UncertaintyConfig(num_samples=16)
+    low = rollout_check(policy, "lift-cube", 0.0, cfg, episodes=1, seed=3000, progress=False)
+    assert low["steps"] == 150 and low["episodes"] == 1 and low["seeds"] == [3000, 3000]
+    assert low["share_above"] > FLAG_SHARE and low["flagged"]
+    # the same seed replays the same U: a threshold at its median puts about half the steps above
+    mid = rollout_check(policy, "lift-cube", low["u_median"], cfg, episodes=1, seed=3000, progress=False)
+    assert mid["u_median"] == pytest.approx(low["u_median"])
+    assert 0.4 <= mid["share_above"] <= 0.5 and mid["flagged"]
+    high = rollout_check(policy, "lift-cube", float("inf"), cfg, episodes=1, seed=3000, progress=False)
+    assert high["share_above"] == 0.0 and not high["flagged"]
+    with pytest.raises(ValueError, match="episodes"):
+        rollout_check(policy, "lift-cube", 0.0, cfg, episodes=0, progress=False)

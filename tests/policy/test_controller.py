@@ -10,6 +10,7 @@ from policy.diffusion_policy import DiffusionPolicy
 from policy.signals.base import Scores
 from sim.frame import RobotFrame
 from sim.spaces import TeleopCommand
+from sim.tasks.lift import LIFT_OBS
 from storage import keys
 from tests.helpers import KinematicTask, tiny_policy
 
@@ -41,7 +42,7 @@ def _chunked(horizon=4, steps=2):
     torch.manual_seed(0)
     p = DiffusionPolicy(
         DiffusionPolicyConfig(
-            obs_dim=23,
+            obs_dim=LIFT_OBS.dim,
             action_horizon=horizon,
             n_action_steps=steps,
             network="mlp",
@@ -50,7 +51,9 @@ def _chunked(horizon=4, steps=2):
             num_inference_steps=2,
         )
     )
-    p.fit_normalizers(np.random.default_rng(0).normal(size=(64, 23)), np.random.default_rng(1).uniform(size=(64, 10)))
+    p.fit_normalizers(
+        np.random.default_rng(0).normal(size=(64, LIFT_OBS.dim)), np.random.default_rng(1).uniform(size=(64, 10))
+    )
     return p.eval()
 
 
@@ -149,7 +152,7 @@ def test_asking_holding_a_budgeted_takeover_and_a_fresh_history_on_hand_back():
         controller.step(frames, {0: up})
     back = controller.step(frames)[0]
     assert back.source == keys.SOURCE_POLICY
-    assert back.obs.shape == (1, 23) and np.allclose(back.obs[0], frames[0].obs)  # a fresh history
+    assert back.obs.shape == (1, LIFT_OBS.dim) and np.allclose(back.obs[0], frames[0].obs)  # a fresh history
     assert any(t.any() for t in signal.seen_teleop)  # the trigger rule saw the teleop flags
 
 

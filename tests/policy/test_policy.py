@@ -9,6 +9,7 @@ from policy.config import DiffusionPolicyConfig
 from policy.diffusion import NoiseSchedule
 from policy.diffusion_policy import DiffusionPolicy
 from policy.train import TrainConfig, train_policy
+from sim.tasks.lift import LIFT_OBS
 from storage import keys
 
 OBS_DIM = 7
@@ -208,13 +209,18 @@ def test_rollout_scores_every_step_of_every_robot():
 
     torch.manual_seed(0)
     cfg = DiffusionPolicyConfig(
-        obs_dim=23, network="mlp", mlp_hidden=32, obs_encoder_dims=(16,), step_embed_dim=8, num_inference_steps=3
+        obs_dim=LIFT_OBS.dim,
+        network="mlp",
+        mlp_hidden=32,
+        obs_encoder_dims=(16,),
+        step_embed_dim=8,
+        num_inference_steps=3,
     )
     policy = DiffusionPolicy(cfg).eval()
     rng = np.random.default_rng(0)
     low = np.r_[[-0.1, -0.1, 0.9], [-1] * 6, [-1]]
     high = np.r_[[0.1, 0.1, 1.0], [1] * 6, [1]]
-    policy.fit_normalizers(rng.normal(size=(64, 23)), rng.uniform(low, high, size=(64, 10)))
+    policy.fit_normalizers(rng.normal(size=(64, LIFT_OBS.dim)), rng.uniform(low, high, size=(64, 10)))
     unc = UncertaintyConfig(num_samples=16)
     episodes, _ = rollout_policy(
         policy, "lift-cube", [5, 6], n_envs=2, uncertainty=unc, keep_fields=True, progress=False
@@ -246,3 +252,42 @@ def test_symmetry_augmentation_turns_each_sample_and_needs_a_symmetry():
     turns = np.concatenate(seen)
     assert len(seen) == 5 and turns.shape == (80, 1) and set(np.unique(turns)) == {0, 1}
     assert all(np.isfinite(history["train_loss"]))
+
+
+def test_actions_normalize_over_the_task_bounds_not_the_data():
+    """Rotation and gripper over [-1, 1] and position over the workspace: data that spans a sliver of
+    a dimension cannot stretch it, so a probe radius means the same distance in every policy."""
+    from sim.tasks.lift import LIFT_WORKSPACE
+
+    space = LIFT_WORKSPACE
+    rng = np.random.default_rng(0)
+    # a rotation that barely varies in the data (the drawer's case): span 0.002
+    acts = np.concatenate(
+        [rng.uniform([-0.1, -0.1, 0.9], [0.1, 0.1, 1.0], (64, 3)), np.tile([0, 1, 0, 1, 0, 0, -1], (64, 1))], 1
+    )
+    acts[:, 3] += rng.uniform(-0.001, 0.001, 64)
+    policy = DiffusionPolicy(DiffusionPolicyConfig(obs_dim=4, network="mlp", mlp_hidden=16, step_embed_dim=8))
+    policy.fit_normalizers(rng.normal(size=(64, 4)), acts, action_bounds=(space.low, space.high))
+    np.testing.assert_allclose(policy.normalize_action(torch.as_tensor(space.low)).numpy(), 0.0, atol=1e-6)
+    np.testing.assert_allclose(policy.normalize_action(torch.as_tensor(space.high)).numpy(), 1.0, atol=1e-6)
+    np.testing.assert_allclose(
+        policy.normalize_action(torch.as_tensor(acts[:5])).numpy(), space.normalize(acts[:5]), atol=1e-6
+    )
+    # a real end-effector rotation 0.15 rad off the data's: 0.037 units, not the dozens a data span gives
+    turned = acts[:1].copy()
+    turned[0, 3:9] = [np.sin(0.15), np.cos(0.15), 0, np.cos(0.15), -np.sin(0.15), 0]
+    shift = policy.normalize_action(torch.as_tensor(turned)) - policy.normalize_action(torch.as_tensor(acts[:1]))
+    assert float(shift.abs().max()) < 0.1
+    data_fit = DiffusionPolicy(DiffusionPolicyConfig(obs_dim=4, network="mlp", mlp_hidden=16, step_embed_dim=8))
+    data_fit.fit_normalizers(rng.normal(size=(64, 4)), acts)
+    shift = data_fit.normalize_action(torch.as_tensor(turned)) - data_fit.normalize_action(torch.as_tensor(acts[:1]))
+    assert float(shift.abs().max()) > 10
+    # training actions outside the bounds are refused, by dimension
+    bad = acts.copy()
+    bad[3, 0] = 0.5
+    with pytest.raises(ValueError, match=r"1 training actions lie outside the action bounds in dims \[0\]"):
+        policy.fit_normalizers(rng.normal(size=(64, 4)), bad, action_bounds=(space.low, space.high))
+    with pytest.raises(ValueError, match="low < high"):
+        policy.action_normalizer.set_bounds(space.high, space.low)
+    with pytest.raises(ValueError, match="10 values"):
+        policy.action_normalizer.set_bounds(space.low[:3], space.high[:3])

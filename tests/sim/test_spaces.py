@@ -86,3 +86,12 @@ def test_action_space_validation():
 def test_rot6d_round_trip():
     rot = Rotation.random(20, random_state=0).as_matrix()
     np.testing.assert_allclose(rot6d_to_mat(mat_to_rot6d(rot)), rot, atol=1e-12)
+
+
+def test_probe_radius_in_each_dimensions_units():
+    """r = 0.05 of the lift workspace (0.45 x 0.5 x 0.35 m) and of the [-1, 1] rotation and gripper."""
+    from sim.tasks.lift import LIFT_WORKSPACE
+
+    got = LIFT_WORKSPACE.radius_in_units(0.05)
+    assert got["position_cm"] == [2.25, 2.5, 1.75]
+    assert got["rot6d"] == 0.1 and got["gripper"] == 0.1

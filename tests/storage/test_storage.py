@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from sim.demos import record_demos
+from sim.tasks.lift import LIFT_OBS
 from storage import keys
 from storage.dataset import DatasetConfig, DatasetError, load_dataset
 from storage.episodes import EpisodeReadError, EpisodeWriter, TruncatedEpisodeError, read_episode
@@ -162,12 +163,12 @@ def test_recorded_demos_are_readable_training_data(tmp_path):
     assert ep.meta["task"] == "lift-cube" and ep.meta["seed"] == 0 and ep.meta["object"] == "cube"
     assert ep.meta["expert"] == "lift-scripted"
     assert ep.outcome["success"] and ep.success[-1]
-    assert ep.obs.shape[1] == 23 and ep.actions.shape[1] == 10
+    assert ep.obs.shape[1] == LIFT_OBS.dim and ep.actions.shape[1] == 10
     # the recorded end-effector position is the observation's eef_pos
     np.testing.assert_allclose(ep.ee_pose[:, :3], ep.obs[:, :3])
     ds = load_dataset(out, DatasetConfig(obs_horizon=2, action_horizon=8, val_fraction=0.5))
     train = ds.arrays("train")
-    assert train[keys.OBS].shape[1:] == (2, 23) and train[keys.ACTION].shape[1:] == (8, 10)
+    assert train[keys.OBS].shape[1:] == (2, LIFT_OBS.dim) and train[keys.ACTION].shape[1:] == (8, 10)
     shutil.rmtree(out)
 
 
