@@ -141,12 +141,10 @@ def _add_uncertainty_args(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_rollout(args: argparse.Namespace) -> int:
-    import torch
 
     from policy.evaluate import rollout_policy, summarize
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    _set_threads(args)
     policy, info, calibration = _policy_with(args)
     uncertainty = None if args.no_uncertainty else _uncertainty_config(args)
     seeds = list(range(args.seed, args.seed + args.episodes))
@@ -323,13 +321,11 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
-    import torch
 
     from policy.bench import bench_uncertainty
     from policy.evaluate import rollout_policy
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    _set_threads(args)
     policy, info, _ = _policy_with(args)
     task = args.task or info["task"]
     seeds = list(range(args.seed, args.seed + args.episodes))
@@ -385,10 +381,13 @@ def _cmd_separation(args: argparse.Namespace) -> int:
     from policy.separation import shift_separation
 
     policy, info = load_policy(args.policy)
+    in_task = args.in_task or info.get("task")
+    if not in_task:
+        raise ValueError(f"{args.policy}/config.json names no task: pass --in-task")
     report = shift_separation(
         policy,
         args.policy,
-        args.in_task or info["task"],
+        in_task,
         args.shift_tasks,
         args.episodes,
         args.seed,
