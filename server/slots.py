@@ -7,16 +7,19 @@ no fleet state, so the fleet calls it outside its lock; swapping a slot in is th
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from policy.checkpoint import CheckpointError, load_policy
+from policy.checkpoint import CheckpointError, load_calibration, load_policy
 from policy.controller import Controller, ControllerConfig
 from policy.diffusion_policy import DiffusionPolicy
 from policy.signals import SignalError, load_signal
 from server.errors import ServiceError
 from server.settings import Settings
 from sim.registry import make_task
+
+log = logging.getLogger("hitl.server")
 
 
 @dataclass
@@ -67,5 +70,24 @@ def load_slot(settings: Settings, path: Path, task: str, version: int) -> Policy
             signals[name] = load_signal(policy, path, name)
         except (SignalError, ValueError) as exc:
             raise ServiceError(422, f"policy {path}: signal {name!r} is not ready: {exc}") from exc
+    _warn_if_miscalibrated(path)
     controller = Controller(policy, signals, settings.signal, spec.action_space, controller_config(settings))
     return PolicySlot(version, path, task, policy, float(signals["denoising"].threshold), controller)
+
+
+def _warn_if_miscalibrated(path: Path) -> None:
+    """Logs ``hitl calibrate``'s flag: its rollouts had far more steps above the threshold than the
+    validation set, so this policy's robots would ask for help far more often than the quantile says."""
+    try:
+        check = (load_calibration(path) or {}).get("rollout_check") or {}
+    except (OSError, ValueError, AttributeError):  # unreadable: the threshold's own loading reports it
+        return
+    if isinstance(check, dict) and check.get("flagged"):
+        log.warning(
+            "policy %s: calibration problem: %.0f%% of the steps of its %s calibration rollouts were above "
+            "the threshold (flagged above %.0f%%); expect its robots to ask for help often",
+            path,
+            100 * check.get("share_above", 0.0),
+            check.get("task", "?"),
+            100 * check.get("flag_share", 0.0),
+        )
