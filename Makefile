@@ -67,6 +67,7 @@ signals-docs: install
 	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart --out runs/lift-cube-c8 --action-horizon 8 --n-action-steps 4 --steps 8000 --threads 2
 	for s in $(SIGNALS_C1); do $(BIN)/hitl train-signal --policy runs/lift-cube --signal $$s --data data/demos/lift-cube-dart --quiet || exit 1; done
 	for s in stac denoising; do $(BIN)/hitl train-signal --policy runs/lift-cube-c8 --signal $$s --data data/demos/lift-cube-dart --quiet || exit 1; done
+	$(BIN)/hitl report separation --policy runs/lift-cube-c8 --signals stac denoising --out docs/separation-lift-c8.json
 	$(BIN)/hitl rollout --policy runs/lift-cube-c8 --task lift-cube --episodes 20 --envs 8 --no-uncertainty --json --quiet > docs/rollout-lift-cube-c8.json
 	$(BIN)/hitl bench signals --policy runs/lift-cube --stac-policy runs/lift-cube-c8 --task lift-hammer --quiet > docs/bench-signals.json
 	$(BIN)/hitl assist --policy runs/lift-cube --task lift-hammer --driver denoising --shadow all --episodes 8 --plot docs/figures --quiet > docs/assist-lift-hammer.json

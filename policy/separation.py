@@ -2,7 +2,8 @@
 
 The policy rolls out autonomously through the one controller on its training task and on each
 shifted task (seeded; the states are cached next to the policy, ``policy.signals.data``); every
-signal in the registry scores every visited state, and the AUROC says how often a shifted state
+signal in the registry scores every visited state, each episode replayed in order as the fleet
+would score it, and the AUROC says how often a shifted state
 scores above a training-distribution state (0.5: no better than chance; below 0.5: the signal is
 *higher* on the training distribution). Signals that need auxiliary networks are scored only when
 ``hitl train-signal`` has trained them next to the policy; the report says which were skipped.
@@ -20,7 +21,7 @@ from policy.diffusion_policy import DiffusionPolicy
 from policy.signals.base import SignalError, StepSet
 from policy.signals.data import policy_rollouts
 from policy.signals.registry import SIGNALS, load_signal, make_signal
-from policy.signals.sampling import batched_scores
+from policy.signals.sampling import replay_series
 
 
 @dataclass(frozen=True)
@@ -102,9 +103,9 @@ def shift_separation(
         if signal is None:
             skipped[name] = why
             continue
-        scores = {
-            task: batched_scores(signal, s, 64, progress, f"{name} on {task}", ids_offset=i * 1_000_000)
-            for i, (task, s) in enumerate(steps.items())
+        scores = {  # each episode replayed in order: stateful signals (stac's running sum) see their history
+            task: np.concatenate(replay_series(signal, s, s.episodes(), progress, f"{name} on {task}"))
+            for task, s in steps.items()
         }
         table[name] = {task: auroc(scores[in_task], scores[task]) for task in shift_tasks}
     return SeparationReport(in_task, [seeds[0], seeds[-1]], {t: len(s) for t, s in steps.items()}, table, skipped)

@@ -315,18 +315,17 @@ class StacSignal(AssistanceSignal):
         return quantile_record(peaks, self.config.quantile, f"{len(episodes)} successful policy rollouts")
 
 
-def replay_episodes(
+def replay_series(
     signal: AssistanceSignal,
     steps: StepSet,
     episodes: list[np.ndarray],
     progress: bool,
     desc: str,
-    reduce: Callable[[np.ndarray], float],
     batch: int = 16,
-) -> np.ndarray:
-    """Feeds recorded episodes through a stateful signal in lockstep (one robot per episode) and
-    reduces each episode's score sequence to one number."""
-    out = np.zeros(len(episodes))
+) -> list[np.ndarray]:
+    """Feeds recorded episodes through a stateful signal in lockstep (one robot per episode, steps in
+    order, fresh state per episode); returns each episode's score at every step."""
+    out: list[np.ndarray] = []
     bar = tqdm(total=len(episodes), desc=desc, disable=not progress, unit="ep")
     try:
         for g in range(0, len(episodes), batch):
@@ -341,8 +340,21 @@ def replay_episodes(
                 for j, v in zip(live, scores.value, strict=True):
                     series[j].append(float(v))
             signal.reset(ids)
-            out[g : g + len(group)] = [reduce(np.asarray(s)) for s in series]
+            out += [np.asarray(s) for s in series]
             bar.update(len(group))
     finally:
         bar.close()
     return out
+
+
+def replay_episodes(
+    signal: AssistanceSignal,
+    steps: StepSet,
+    episodes: list[np.ndarray],
+    progress: bool,
+    desc: str,
+    reduce: Callable[[np.ndarray], float],
+    batch: int = 16,
+) -> np.ndarray:
+    """``replay_series`` with each episode's score sequence reduced to one number."""
+    return np.array([reduce(s) for s in replay_series(signal, steps, episodes, progress, desc, batch)])

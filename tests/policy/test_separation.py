@@ -34,3 +34,41 @@ def test_separation_scores_every_state_of_both_tasks_and_names_what_it_skipped(t
     assert "| denoising |" in text and "- thrifty:" in text
     with pytest.raises(ValueError, match="unknown signals"):
         shift_separation(policy, folder, "lift-cube", ["lift-hammer"], signals=["nope"], progress=False)
+
+
+def test_replay_series_gives_each_episode_its_own_history_in_order():
+    """A stateful signal (a per-robot step counter) sees every episode from its first step, in order."""
+    from policy.signals.base import Scores, StepSet
+    from policy.signals.sampling import replay_series
+
+    class Counter:
+        def __init__(self):
+            self.seen: dict[int, int] = {}
+
+        def reset(self, ids):
+            for i in ids:
+                self.seen.pop(int(i), None)
+
+        def score(self, batch):
+            out = []
+            for i in batch.robot_ids:
+                self.seen[int(i)] = self.seen.get(int(i), 0) + 1
+                out.append(self.seen[int(i)])
+            return Scores(np.array(out, dtype=float))
+
+    lengths = [3, 5, 2]
+    n = sum(lengths)
+    episode = np.repeat(np.arange(3), lengths)
+    t = np.concatenate([np.arange(k) for k in lengths])
+    steps = StepSet(
+        obs=np.zeros((n, 1, 4), np.float32),
+        action=np.zeros((n, 1, 10), np.float32),
+        current=np.zeros((n, 10), np.float32),
+        episode=episode,
+        t=t,
+        last=np.zeros(n, np.int64),
+        success=np.zeros(n, bool),
+        names=["a", "b", "c"],
+    )
+    series = replay_series(Counter(), steps, steps.episodes(), progress=False, desc="", batch=2)
+    assert [s.tolist() for s in series] == [[1, 2, 3], [1, 2, 3, 4, 5], [1, 2]]
