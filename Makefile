@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test lint docs policy-docs signals-docs loop-docs clean
+.PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -73,6 +73,16 @@ signals-docs: install
 	$(BIN)/hitl assist --policy runs/lift-cube --task lift-hammer --driver denoising --shadow all --episodes 8 --plot docs/figures --quiet > docs/assist-lift-hammer.json
 	$(BIN)/hitl assist --policy runs/lift-cube-c8 --task lift-hammer --driver stac --shadow denoising --episodes 8 --quiet > docs/assist-lift-hammer-stac.json
 	$(BIN)/hitl bench fleet --robots 1,4,8,16 --quiet > docs/bench-fleet.json
+
+# docs/benchmarks.md: the human-in-the-loop benchmark on the paper's protocol (every registered signal, the
+# five problem tasks, 20 seeded episodes each, a threshold sweep) and its figures in docs/img/. Needs the
+# policies and signals of `make policy-docs`; each policy's `spread` calibration is made here. Cells are
+# cached under runs/bench-hitl, so a rerun only computes what changed (about 2 h from scratch on 2 cores).
+bench-docs: install
+	for p in lift-cube cup-stack open-drawer; do $(BIN)/hitl train-signal --policy runs/$$p --signal spread --data data/demos/$$p-dart --quiet || exit 1; done
+	for p in cup-stack open-drawer; do for s in output-variance diff-dagger thrifty hula-offline; do $(BIN)/hitl train-signal --policy runs/$$p --signal $$s --data data/demos/$$p-dart --quiet || exit 1; done; done
+	$(BIN)/hitl bench hitl --report docs/benchmarks.md --figures docs/img --json > docs/bench-hitl.json
+	for p in lift-cube cup-stack open-drawer; do mkdir -p policies/$$p/signals/spread && cp runs/$$p/signals/spread/config.json policies/$$p/signals/spread/ || exit 1; done
 
 # The demo fleet served with the operator bot helping, 20 minutes per hand-back mode (docs/service.md, "The loop").
 loop-docs: install

@@ -30,11 +30,14 @@ from policy.diffusion_policy import DiffusionPolicy
 from policy.lockstep import run_lockstep
 from policy.signals.base import AssistanceSignal
 from sim.env import Task
+from sim.frame import RobotFrame
 from sim.registry import make_expert, make_task
-from sim.spaces import TeleopCommand
+from sim.spaces import TeleopCommand, TeleopLimits
+from sim.view import OperatorView
 from storage import keys
 
 MODES = HAND_BACK
+LIMITS = TeleopLimits()
 
 
 @dataclass(frozen=True)
@@ -45,6 +48,7 @@ class AssistConfig:
     watchdog: float | None = None  # ask once at this fraction of the horizon without success
     n_envs: int = 4
     seed: int = 0
+    batch_invariant: bool = False  # the controller's robot-by-robot mode (to compare with the service)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -86,42 +90,53 @@ class AssistedEpisode:
 
 
 class ExpertOperator:
-    """The task's scripted expert as the simulated operator: at each takeover it picks up where the
-    scene stands (``Expert.resume``, seeded by the episode seed and the event count)."""
+    """The task's scripted expert as the simulated operator, driving from the operator view only
+    (``OperatorView``: pose, gripper and the scene, as ``hitl operator-bot`` sees them through the
+    API). At each takeover it picks up where the scene stands (``Expert.resume``, seeded by the
+    episode seed and the event count); its commands are clamped to the teleop limits, as a console's
+    are."""
 
     def __init__(self, task_name: str, seeds: list[int]) -> None:
         self.task_name, self.seeds = task_name, seeds
         self.experts: dict[int, object] = {}
         self.events: dict[int, int] = {}
+        self.clock: dict[int, int] = {}  # the robot's step clock after this operator's last command
 
-    def take_over(self, robot_id: int, task: Task) -> None:
+    def take_over(self, robot_id: int, frame: RobotFrame) -> None:
+        """Plans from the view, or carries on with its plan when the policy has not moved the robot
+        since this operator's last command (only hold steps in between: the clock has not moved)."""
         self.events[robot_id] = self.events.get(robot_id, 0) + 1
         expert = self.experts.setdefault(robot_id, make_expert(self.task_name))
-        expert.resume(task, np.random.default_rng([self.seeds[robot_id], self.events[robot_id]]))
+        view = OperatorView.from_frame(self.task_name, frame)
+        rng = np.random.default_rng([self.seeds[robot_id], self.events[robot_id]])
+        expert.resume(view, rng, carry_on=self.clock.get(robot_id) == frame.clock)
 
-    def command(self, robot_id: int, task: Task) -> TeleopCommand:
-        return self.experts[robot_id].act(task)
+    def command(self, robot_id: int, frame: RobotFrame) -> TeleopCommand:
+        self.clock[robot_id] = frame.clock + 1
+        return self.experts[robot_id].act(OperatorView.from_frame(self.task_name, frame)).clamped(LIMITS)
 
 
 def run_assisted(
     policy: DiffusionPolicy,
     task_name: str,
     seeds: list[int],
-    driver: AssistanceSignal,
+    driver: AssistanceSignal | None,
     shadow: dict[str, AssistanceSignal] | None = None,
     config: AssistConfig | None = None,
     progress: bool = True,
 ) -> tuple[list[AssistedEpisode], dict]:
     """One assisted episode per seed, in waves of ``n_envs`` robots stepping in lockstep through the
     fleet's ``Controller``: a robot that asks holds for one step while the simulated operator takes
-    over, then the operator's commands drive it until control returns."""
+    over, then the operator's commands drive it until control returns. With no ``driver`` nothing
+    asks: the policy runs alone and every ``shadow`` signal is scored (autonomous shadow runs)."""
     cfg = config or AssistConfig()
-    shadow = {k: v for k, v in (shadow or {}).items() if k != driver.name}
-    signals = {driver.name: driver, **shadow}
+    driver_name = driver.name if driver is not None else None
+    shadow = {k: v for k, v in (shadow or {}).items() if k != driver_name}
+    signals = {**({driver_name: driver} if driver is not None else {}), **shadow}
     controller = Controller(
         policy,
         signals,
-        driver.name,
+        driver_name,
         make_task(task_name).action_space,
         ControllerConfig(
             hand_back=cfg.mode,
@@ -130,10 +145,13 @@ def run_assisted(
             cooldown=cfg.cooldown,
             watchdog=cfg.watchdog,
             seed=cfg.seed,
+            batch_invariant=cfg.batch_invariant,
         ),
     )
     episodes = [
-        AssistedEpisode(task_name, s, driver.name, scores={k: [] for k in signals}, wants={k: [] for k in signals})
+        AssistedEpisode(
+            task_name, s, driver_name or "none", scores={k: [] for k in signals}, wants={k: [] for k in signals}
+        )
         for s in seeds
     ]
 
@@ -157,7 +175,7 @@ def run_assisted(
             record,
             ExpertOperator(task_name, seeds),
             progress,
-            f"assisted {task_name} ({driver.name})",
+            f"assisted {task_name} ({driver_name})" if driver is not None else f"shadow {task_name}",
         )
     for ep, out in zip(episodes, outcomes, strict=True):
         ep.success, ep.steps = out.success, out.steps

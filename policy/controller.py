@@ -72,7 +72,9 @@ class ControllerConfig:
     once), so that a score that keeps re-triggering cannot flood the queue; watchdog: a robot that has
     used this fraction of its episode's horizon without success asks for help once, whatever its
     signal says (None: only the signal asks); assistance: False scores every signal but never asks
-    (shadow runs); seed: the sampling noise's seed."""
+    (shadow runs); seed: the sampling noise's seed; batch_invariant: run the networks robot by robot,
+    so that a robot's numbers do not depend, even in the last float bit, on which robots share its
+    step (slower; for comparing runs whose batches differ, such as the service and in-process runs)."""
 
     hand_back: Literal["budgeted", "continuous"] = "budgeted"
     budget: int = 4
@@ -81,6 +83,7 @@ class ControllerConfig:
     watchdog: float | None = None
     assistance: bool = True
     seed: int = 0
+    batch_invariant: bool = False
 
     def __post_init__(self) -> None:
         if self.hand_back not in HAND_BACK:
@@ -279,7 +282,10 @@ class Controller:
                 out[rid] = RobotStep(rid, np.asarray(hold, np.float64).copy(), keys.SOURCE_HOLD, r.mode)
             if send is not None:
                 send(rid, out[rid].action, out[rid].source)
-        if scored:
+        if scored and self.config.batch_invariant:
+            for rid in scored:
+                self._score_and_decide([rid], frames, out, send)
+        elif scored:
             self._score_and_decide(scored, frames, out, send)
         return {rid: out[rid] for rid in frames}
 

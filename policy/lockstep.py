@@ -25,11 +25,12 @@ OVERTIME = 2  # an episode's hard stop, in horizons of control steps (holds and 
 
 
 class SimulatedOperator(Protocol):
-    """Answers assistance requests from what an operator sees of the task."""
+    """Answers assistance requests from what an operator sees of the robot: its frame (pose, gripper
+    and the scene's goal, ``sim.view.OperatorView``), never the simulator's hidden state."""
 
-    def take_over(self, robot_id: int, task: Task) -> None: ...
+    def take_over(self, robot_id: int, frame: RobotFrame) -> None: ...
 
-    def command(self, robot_id: int, task: Task) -> TeleopCommand: ...
+    def command(self, robot_id: int, frame: RobotFrame) -> TeleopCommand: ...
 
 
 @dataclass
@@ -84,9 +85,9 @@ def run_lockstep(
                         mode = controller.mode(rid)
                         if mode == Mode.WAITING:  # the simulated operator answers at once
                             controller.take_over(rid)
-                            operator.take_over(rid, wave[rid])
+                            operator.take_over(rid, frames[rid])
                         if mode != Mode.AUTONOMOUS:
-                            commands[rid] = operator.command(rid, wave[rid])
+                            commands[rid] = operator.command(rid, frames[rid])
                 steps = controller.step(frames, commands)
                 frames = {}
                 for rid, step in steps.items():

@@ -33,6 +33,7 @@ from policy.gmm import BACKENDS, CRITERIA, MixtureFit, fit_mixtures
 from sim.spaces import POS
 
 EpsFn = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
+DIRECTIONS = ("raw", "unit")
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,9 @@ class UncertaintyConfig:
     chunk_step: int = 0
     reg_covar: float = 1e-6
     seed: int = 0
+    # variants (the paper's metric is the default: raw vectors of the field at k = 0)
+    directions: str = "raw"  # "unit": each vector scaled to length 1 before the fit
+    noise_step: int = 0  # k at which the field is evaluated (the probe is then noised to level k)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.num_samples, int) and self.num_samples >= 2):
@@ -64,6 +68,10 @@ class UncertaintyConfig:
             raise ValueError(f"chunk_step must be an integer >= 0, got {self.chunk_step!r}")
         if not self.reg_covar > 0:
             raise ValueError(f"reg_covar must be > 0, got {self.reg_covar!r}")
+        if self.directions not in DIRECTIONS:
+            raise ValueError(f"directions must be one of {DIRECTIONS}, got {self.directions!r}")
+        if not (isinstance(self.noise_step, int) and not isinstance(self.noise_step, bool) and self.noise_step >= 0):
+            raise ValueError(f"noise_step must be an integer >= 0, got {self.noise_step!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -191,9 +199,18 @@ class UncertaintyEstimator:
         return actions[..., POS], actions[:, :, None, :].expand(b, cfg.num_samples, chunk, d)
 
     @torch.no_grad()
-    def __call__(self, eps_fn: EpsFn, obs: torch.Tensor, center: torch.Tensor, chunk: int = 1) -> UncertaintyBatch:
+    def __call__(
+        self,
+        eps_fn: EpsFn,
+        obs: torch.Tensor,
+        center: torch.Tensor,
+        chunk: int = 1,
+        alphas_cumprod: torch.Tensor | None = None,
+    ) -> UncertaintyBatch:
         """obs: whatever ``eps_fn`` takes, batched over B robots; center: (B, D) current end-effector
-        action (pose + gripper) in the normalized action space; chunk: the predictor's chunk length."""
+        action (pose + gripper) in the normalized action space; chunk: the predictor's chunk length;
+        alphas_cumprod: (K,) the noise schedule's ᾱ, needed when ``noise_step`` > 0 (the probe is
+        scaled by sqrt(ᾱ_k), as the forward process scales clean actions; the field is read there)."""
         cfg = self.config
         center = torch.as_tensor(center, dtype=torch.float32)
         if center.dim() != 2 or center.shape[1] < 3:
@@ -203,8 +220,14 @@ class UncertaintyEstimator:
         if not cfg.chunk_step < chunk:
             raise ValueError(f"chunk_step {cfg.chunk_step} is outside the chunk of length {chunk}")
         samples, actions = self.probe(center, chunk)
-        eps = eps_fn(obs, actions, 0)
+        if cfg.noise_step > 0:
+            if alphas_cumprod is None or cfg.noise_step >= len(alphas_cumprod):
+                raise ValueError(f"noise_step {cfg.noise_step} needs the schedule's alphas_cumprod covering it")
+            actions = actions * float(alphas_cumprod[cfg.noise_step]) ** 0.5
+        eps = eps_fn(obs, actions, cfg.noise_step)
         vectors = eps[:, :, cfg.chunk_step, POS].to(torch.float64)
+        if cfg.directions == "unit":
+            vectors = vectors / vectors.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         fit = fit_mixtures(vectors, cfg.max_modes, cfg.criterion, cfg.backend, cfg.seed, cfg.reg_covar)
         d = mode_divergence(fit.means, fit.n)
         var_g = mixture_variance(vectors, fit.labels, fit.weights)

@@ -274,15 +274,23 @@ class Fleet:
         frames = {r.id: r.frame for r in robots}
         taken = {r.id: t for r in robots if r.mode == "teleop" and (t := r.commands.take()) is not None}
         commands = {rid: cmd for rid, (cmd, _, _) in taken.items()}
+        # simulated robots that only hold while they wait for their operator (or for a command) are not
+        # stepped when ``freeze_idle``: their scene waits with them, and their frame stays current
+        idle = set()
+        if self.settings.freeze_idle:
+            modes = {r.id: slot.controller.mode(r.id) for r in robots if r.id in slot.controller}
+            idle = {rid for rid, m in modes.items() if m == Mode.WAITING or (m == Mode.TELEOP and rid not in commands)}
 
         def send(rid: int, action: np.ndarray, source: str) -> None:
+            if rid in idle:
+                return
             self._send(self.robots[rid], action, source)
             if rid in taken and source == keys.SOURCE_OPERATOR:
                 self.robots[rid].latencies.append(time.monotonic() - taken[rid][1])
 
         steps = slot.controller.step(frames, commands, send)
         for r in robots:
-            r.fresh = False
+            r.fresh = r.id in idle  # a frozen robot's frame is still its current one
             if r.fault_pending is not None:  # its worker died while the step was being sent
                 why, r.fault_pending = r.fault_pending, None
                 self._fault(r, why)

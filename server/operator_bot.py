@@ -11,10 +11,10 @@ import time
 
 import httpx
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from sim.registry import make_expert
 from sim.spaces import TeleopLimits
+from sim.view import OperatorView, ViewUnavailable
 
 log = logging.getLogger("hitl.operator_bot")
 LIMITS = TeleopLimits()
@@ -22,34 +22,6 @@ LIMITS = TeleopLimits()
 
 class TakeoverOver(Exception):
     """The takeover cannot go on: the service handed control back, the episode ended, or the robot is gone."""
-
-
-class ViewTask:
-    """What the scripted experts read from a task, rebuilt from the operator view."""
-
-    def __init__(self, view: dict) -> None:
-        self.update(view)
-
-    def update(self, view: dict) -> None:
-        """Raises TakeoverOver when the view has no scene to drive (no frame yet, or a new episode)."""
-        pose = view.get("pose")
-        if pose is None or view.get("mode") not in (None, "teleop"):
-            raise TakeoverOver(f"robot {view.get('robot_id')} is {view.get('mode')} with pose {pose}")
-        self.name = view["task"]
-        self._pos = np.asarray(pose["position"], dtype=np.float64)
-        self._rot = Rotation.from_quat(pose["quaternion"]).as_matrix()
-        goal = view.get("goal") or {}
-        self._privileged = {k: np.asarray(v) if isinstance(v, list) else v for k, v in goal.items()}
-        self._gripper = float(view["gripper"]) if view.get("gripper") is not None else 0.08
-
-    def gripper_opening(self) -> float:
-        return self._gripper
-
-    def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._pos.copy(), self._rot.copy()
-
-    def privileged(self) -> dict:
-        return dict(self._privileged)
 
 
 class OperatorBot:
@@ -64,6 +36,7 @@ class OperatorBot:
         self.takeovers = 0
         self.commands = 0
         self.errors = 0  # network errors and unexpected answers, each logged
+        self._driving: dict[int, list] = {}  # robot id -> [episode seed, expert, clock after its last command]
 
     def close(self) -> None:
         self.client.close()
@@ -75,20 +48,28 @@ class OperatorBot:
         r.raise_for_status()
         return r.json()
 
+    def _view(self, robot_id: int, raw: dict | None = None) -> OperatorView:
+        """The operator view of ``robot_id`` (``raw``: its JSON, when already fetched); TakeoverOver when
+        it has no scene to drive."""
+        try:
+            return OperatorView.from_api(raw if raw is not None else self._get(f"/robots/{robot_id}/view"))
+        except ViewUnavailable as why:
+            raise TakeoverOver(str(why)) from None
+
     def next_request(self) -> dict | None:
         return next((r for r in self._get("/assistance") if r["holder"] is None), None)
 
     def takeover(self, robot_id: int, seed: int = 0, max_steps: int = 1000) -> int:
-        """Claims ``robot_id`` and drives it until the service hands control back; returns steps driven."""
+        """Claims ``robot_id`` and drives it until the service hands control back; returns steps driven.
+        ``seed`` seeds the plan only when the service does not report the episode's seed."""
         r = self.client.post(f"{self.api}/robots/{robot_id}/claim")
         if r.status_code in (404, 409):  # someone else was faster, or the request is gone
             return 0
         r.raise_for_status()
         steps = 0
         try:
-            task = ViewTask(self._get(f"/robots/{robot_id}/view"))
-            expert = make_expert(task.name)
-            expert.resume(task, np.random.default_rng([seed, robot_id]))  # pick up where the scene stands
+            raw = self._get(f"/robots/{robot_id}/view")
+            expert = self._expert_for(robot_id, self._view(robot_id, raw), raw, seed)
             last_beat = time.monotonic()
             body = None  # a command refused with 429 is sent again, not recomputed (the expert has a state)
             while steps < max_steps:
@@ -99,8 +80,8 @@ class OperatorBot:
                 if detail["mode"] != "teleop":
                     break
                 if body is None:
-                    task.update(self._get(f"/robots/{robot_id}/view"))
-                    cmd = expert.act(task).clamped(LIMITS)  # send what the robot will execute
+                    raw = self._get(f"/robots/{robot_id}/view")
+                    cmd = expert.act(self._view(robot_id, raw)).clamped(LIMITS)  # send what the robot will execute
                     body = {
                         "delta_pos": [float(x) for x in cmd.delta_pos],
                         "delta_rot": [float(x) for x in cmd.delta_rot],
@@ -116,7 +97,10 @@ class OperatorBot:
                 body = None
                 self.commands += 1
                 steps += 1
-                self._wait_applied(robot_id, detail["assisted_steps"])
+                clock = raw.get("clock")
+                if robot_id in self._driving and clock is not None:
+                    self._driving[robot_id][2] = clock + 1  # where the robot stands once this step is done
+                self._wait_applied(robot_id, detail["assisted_steps"], clock)
                 if time.monotonic() - last_beat > self.heartbeat_s:
                     self.client.post(f"{self.api}/robots/{robot_id}/heartbeat")
                     last_beat = time.monotonic()
@@ -129,12 +113,36 @@ class OperatorBot:
             self.takeovers += 1
         return steps
 
-    def _wait_applied(self, robot_id: int, before: int, timeout: float = 5.0) -> None:
+    def _expert_for(self, robot_id: int, task: OperatorView, raw: dict, seed: int):
+        """The expert driving this robot, as the in-process simulated operator has it
+        (``policy.assisted.ExpertOperator``): one per episode, re-planned at each request from the view,
+        seeded by (episode seed, requests so far), carrying on with its plan when nothing moved the robot
+        since its last command (the robot's clock is where that command left it)."""
+        episode = raw.get("episode_seed")
+        if episode is None:  # a service that does not report its episodes: a fresh plan per takeover
+            expert = make_expert(task.name)
+            expert.resume(task, np.random.default_rng([seed, robot_id]))
+            return expert
+        if self._driving.get(robot_id, [None])[0] != episode:
+            self._driving[robot_id] = [episode, make_expert(task.name), None]
+        _, expert, left_at = self._driving[robot_id]
+        rng = np.random.default_rng([int(episode), int(raw.get("events") or 0)])
+        expert.resume(task, rng, carry_on=left_at is not None and left_at == raw.get("clock"))
+        return expert
+
+    def _wait_applied(self, robot_id: int, before: int, clock: int | None, timeout: float = 5.0) -> None:
+        """Until the step of the command just sent is done: the robot's clock moved past ``clock`` (or,
+        from a service that reports no clock, its assisted steps moved), or it left teleop."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            d = self._get(f"/robots/{robot_id}")
-            if d["assisted_steps"] != before or d["mode"] != "teleop":
-                return
+            if clock is not None:
+                v = self._get(f"/robots/{robot_id}/view")
+                if v["mode"] != "teleop" or (v.get("clock") is not None and v["clock"] > clock):
+                    return
+            else:
+                d = self._get(f"/robots/{robot_id}")
+                if d["assisted_steps"] != before or d["mode"] != "teleop":
+                    return
             time.sleep(0.01)
 
     def run(self, max_takeovers: int | None = None, idle_sleep: float = 0.2, stop=None) -> None:

@@ -24,6 +24,7 @@ class RobotView:
     id: int
     task: str
     slot: PolicySlot
+    seed: int
     mode: str
     episode_id: int | None
     steps: int

@@ -51,7 +51,9 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535)
     control_hz: float = Field(10.0, ge=0, le=200, description="0: free-running (benchmarks)")
     robots: list[RobotGroup] = Field(default_factory=lambda: [RobotGroup(task="lift-cube", count=1)])
-    signal: str = Field("denoising", description="the assistance signal that asks for help")
+    signal: str = Field(
+        "spread", description="the assistance signal that asks for help (docs/spread.md; 'denoising': the paper's)"
+    )
     assistance: bool = Field(
         True, description="false: signals are scored and recorded, but no robot asks for help (shadow runs)"
     )
@@ -75,6 +77,14 @@ class Settings(BaseSettings):
     record_episodes: bool = False
     max_body_bytes: int = Field(64 * 1024, ge=1024)
     seed: int = 0
+    batch_invariant: bool = Field(
+        False, description="run the policy robot by robot: a robot's numbers do not depend on its batch (slower)"
+    )
+    freeze_idle: bool = Field(
+        False,
+        description="simulated robots only: a robot waiting for its operator, or under teleop without a new "
+        "command, is not stepped at all (its scene waits too), so results do not depend on operator latency",
+    )
     torch_threads: int = Field(1, ge=1, le=256, description="server-side torch threads; workers take the other cores")
     trace_policies: bool = Field(True, description="serve each policy's noise network as a frozen TorchScript trace")
     worker: Literal["process", "in-process"] = Field(

@@ -48,6 +48,7 @@ def controller_config(settings: Settings) -> ControllerConfig:
         watchdog=settings.watchdog,
         assistance=settings.assistance,
         seed=settings.seed,
+        batch_invariant=settings.batch_invariant,
     )
 
 

@@ -28,6 +28,10 @@ from sim.spaces import TeleopCommand
 
 OPEN, CLOSED = -1.0, 1.0
 GRIPPED = 0.07  # finger gap (m) under which the gripper counts as closed (0.08 is fully open)
+# resuming mid-task (``Expert.resume``): the end effector counts as at the grasp within AT_GRASP, and
+# a carried cup as over its target within ALIGNED horizontally (metres)
+AT_GRASP = 0.02
+ALIGNED = 0.01
 # Gripper pointing down (grip-site z = world -z) at yaw 0. The Panda's fingers
 # close along the site's x axis, so a grasped bar lies along the site's y axis;
 # "yaw" is the heading of that y axis. At yaw 0 the fingers close along world y.
@@ -96,10 +100,16 @@ class Expert:
         self.phases = self.plan(task, rng)
         self._i, self._steps_in_phase, self._pause_left = 0, 0, 0
 
-    def resume(self, task: Task, rng: np.random.Generator) -> None:
+    def resume(self, task: Task, rng: np.random.Generator, carry_on: bool = False) -> None:
         """Takes over mid-episode: plans as ``reset`` does, then skips the phases whose work the scene
         shows is done (an object already held, a gripper already at the grasp), judged only from what
-        an operator sees: the end-effector pose, the gripper opening and the scene."""
+        an operator sees: the end-effector pose, the gripper opening and the scene.
+
+        carry_on: the robot is as this expert left it (nothing moved it since its last command, as
+        when control comes straight back after a budgeted takeover): go on with the same plan, as
+        an operator would, instead of planning afresh."""
+        if carry_on and self.phases and not self.done:
+            return
         self.reset(task, rng)
         self._i = min(self.start_phase(task), len(self.phases) - 1)
 
@@ -109,6 +119,10 @@ class Expert:
 
     def _index(self, name: str) -> int:
         return next(i for i, p in enumerate(self.phases) if p.name == name)
+
+    def _target(self, name: str, task: Task) -> np.ndarray:
+        """Where phase ``name`` would move the end effector now (m)."""
+        return np.asarray(self.phases[self._index(name)].target(task)[0], dtype=np.float64)
 
     @property
     def phase(self) -> str:
@@ -189,8 +203,11 @@ class LiftExpert(Expert):
         s = task.privileged()
         pos = task.ee_pose()[0]
         closed = task.gripper_opening() < GRIPPED
+        at_grasp = np.linalg.norm(pos - self._target("descend", task)) < AT_GRASP
         if closed and s["object_pos"][2] > s["rest_z"] + 0.01:  # already holding it off the table
             return self._index("lift")
+        if at_grasp:  # at the grasp: close (again), and give the fingers their time before lifting
+            return self._index("close")
         if not closed and _over(pos, s["grasp_point"], self._approach_h):
             return self._index("descend")
         return 0
@@ -254,8 +271,14 @@ class CupStackExpert(Expert):
         s = task.privileged()
         pos = task.ee_pose()[0]
         closed = task.gripper_opening() < GRIPPED
+        at_grasp = np.linalg.norm(pos - s["green_grasp_point"]) < AT_GRASP
         if closed and s["green_bottom_z"] > s["table_z"] + 0.02:  # carrying the green cup
+            over = self._target("carry", task)
+            if np.linalg.norm(pos[:2] - over[:2]) < ALIGNED:  # over the red cup: go on lowering
+                return self._index("lower")
             return self._index("carry")
+        if at_grasp:  # at the grasp, not lifted yet: close (again) and give the fingers their time
+            return self._index("close")
         if not closed and _over(pos, s["green_grasp_point"], self._approach_h):
             return self._index("descend")
         return 0
@@ -308,8 +331,10 @@ class OpenDrawerExpert(Expert):
         pos = task.ee_pose()[0]
         handle = np.asarray(s["handles"])[self._drawer]
         closed = task.gripper_opening() < GRIPPED
-        if closed and np.linalg.norm(pos - handle) < 0.02:  # holding the intended handle
+        if closed and np.linalg.norm(pos - handle) < AT_GRASP:  # holding the intended handle
             return self._index("pull")
+        if not closed and np.linalg.norm(pos - handle) < AT_GRASP:  # at the handle, fingers still open
+            return self._index("close")
         if not closed and _over(pos, handle, self._approach_h):
             return self._index("descend")
         return 0

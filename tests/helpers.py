@@ -34,9 +34,16 @@ def tiny_policy(task: str = "lift-cube") -> DiffusionPolicy:
 
 
 def tiny_policy_folder(folder, task: str, threshold: float):
-    """``tiny_policy`` saved as a policy folder with ``threshold`` as its calibration."""
-    save_policy(tiny_policy(task), folder, {"task": task})
+    """``tiny_policy`` saved as a policy folder with ``threshold`` as its calibration, for ``denoising``
+    (calibration.json) and for ``spread`` (its signal folder, spread in the action space's own units)."""
+    from policy.signals import make_signal, save_signal
+
+    policy = tiny_policy(task)
+    save_policy(policy, folder, {"task": task})
     save_calibration(folder, {"threshold": threshold, "quantile": 0.95, "samples": 0})
+    spread = make_signal("spread", policy, {"num_samples": 8})
+    spread.calibration = {"threshold": threshold, "quantile": 0.95, "samples": 0, "spread_scale": 1.0}
+    save_signal(spread, folder, {"command": "tests.helpers.tiny_policy_folder"})
     return folder
 
 

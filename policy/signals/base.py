@@ -248,6 +248,37 @@ class AssistanceSignal(ABC):
         return chunks.reshape(b, k, *chunks.shape[1:])
 
 
+class RobotNoise:
+    """One noise stream per robot, seeded by (seed, robot id) and restarted by ``reset``: a robot's
+    draws do not depend on which other robots share its batch, or in which order."""
+
+    def __init__(self, seed: int) -> None:
+        self.seed = int(seed)
+        self._generators: dict[int, torch.Generator] = {}
+
+    def generator(self, robot_id: int) -> torch.Generator:
+        rid = int(robot_id)
+        if rid not in self._generators:
+            state = np.random.SeedSequence([self.seed, rid]).generate_state(2, np.uint32)
+            self._generators[rid] = torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
+        return self._generators[rid]
+
+    def randn(self, robot_ids: Iterable[int], shape: tuple[int, ...]) -> torch.Tensor:
+        """(B, *shape) standard normal draws, row b from robot ``robot_ids[b]``'s stream."""
+        return torch.stack([torch.randn(shape, generator=self.generator(i)) for i in robot_ids])
+
+    def rand(self, robot_ids: Iterable[int]) -> np.ndarray:
+        """(B,) uniform draws in [0, 1), one from each robot's stream."""
+        return np.array([float(torch.rand((), generator=self.generator(i), dtype=torch.float64)) for i in robot_ids])
+
+    def reset(self, robot_ids: Iterable[int] | None = None) -> None:
+        if robot_ids is None:
+            self._generators.clear()
+        else:
+            for i in robot_ids:
+                self._generators.pop(int(i), None)
+
+
 class PerRobot:
     """Per-robot trigger state: a dict from robot id to a value, created on first use."""
 

@@ -156,7 +156,7 @@ class ThriftySignal(_ModelSignal):
         cal = self.calibration
         if cal is None:
             raise SignalError("signal 'thrifty' is not calibrated")
-        ask = np.asarray(scores.value) > 1.0
+        ask = np.asarray(scores.value) > self.threshold  # 1.0 as calibrated: either part over its own
         disc = scores.parts.get("discrepancy")
         if disc is None:
             disc = np.full(len(ask), np.nan)

@@ -8,7 +8,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policy.signals.base import AssistanceSignal, CalibrationData, Scores, SignalConfig, SignalInput, TriggerState
+from policy.signals.base import (
+    AssistanceSignal,
+    CalibrationData,
+    RobotNoise,
+    Scores,
+    SignalConfig,
+    SignalInput,
+    TriggerState,
+)
 
 
 @dataclass(frozen=True)
@@ -51,7 +59,7 @@ class RandomSignal(AssistanceSignal):
 
     def __init__(self, policy, config=None) -> None:
         super().__init__(policy, config)
-        self._rng = np.random.default_rng(self.config.seed)
+        self._noise = RobotNoise(self.config.seed)  # each robot's draws, whatever its batch
         self.match_rate(self.config.rate)
 
     def match_rate(self, rate: float, source: str = "configured rate") -> None:
@@ -61,14 +69,13 @@ class RandomSignal(AssistanceSignal):
         self.calibration = {"threshold": 1.0 - rate, "rate": rate, "quantile": None, "samples": 0, "source": source}
 
     def score(self, batch: SignalInput) -> Scores:
-        return Scores(self._rng.random(len(batch)))
+        return Scores(self._noise.rand(batch.robot_ids))
 
     def wants_help(self, scores: Scores, state: TriggerState) -> np.ndarray:
         return np.asarray(scores.value) >= self.threshold  # uniform in [0, 1): never at rate 0
 
     def reset(self, robot_ids=None) -> None:
-        if robot_ids is None:
-            self._rng = np.random.default_rng(self.config.seed)
+        self._noise.reset(robot_ids)
 
     def _calibrate(self, data: CalibrationData, progress: bool) -> dict:
         assert self.calibration is not None

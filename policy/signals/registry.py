@@ -18,6 +18,7 @@ from policy.signals.base import AssistanceSignal, SignalConfig, SignalError
 from policy.signals.critics import HulaSignal, ThriftySignal
 from policy.signals.reference import FullTeleopSignal, RandomSignal
 from policy.signals.sampling import DenoisingSignal, DiffDaggerSignal, OutputVarianceSignal, StacSignal
+from policy.signals.spread import SpreadSignal
 
 SIGNALS: dict[str, type[AssistanceSignal]] = {
     "denoising": DenoisingSignal,
@@ -26,6 +27,7 @@ SIGNALS: dict[str, type[AssistanceSignal]] = {
     "thrifty": ThriftySignal,
     "stac": StacSignal,
     "hula-offline": HulaSignal,
+    "spread": SpreadSignal,
     "full-teleop": FullTeleopSignal,
     "random": RandomSignal,
 }

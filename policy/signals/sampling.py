@@ -31,6 +31,7 @@ from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
 from sim.spaces import POS
 
 NO_GRIPPER = slice(0, 9)  # every action dimension but the gripper
+CENTERS = ("current", "action")
 
 
 def batched_scores(
@@ -71,11 +72,14 @@ class DenoisingConfig(UncertaintyConfig, SignalConfig):
 
     quantile: float = 0.95
     calibration_batch: int = 64
+    center: str = "current"  # probe centre: "current" pose (the paper) or the policy's next "action"
 
     def __post_init__(self) -> None:
         super().__post_init__()  # validates the metric's settings
         check_quantile("quantile", self.quantile)
         check_positive_int("calibration_batch", self.calibration_batch)
+        if self.center not in CENTERS:
+            raise ValueError(f"center must be one of {CENTERS}, got {self.center!r}")
 
     def uncertainty(self) -> UncertaintyConfig:
         return UncertaintyConfig(**{f.name: getattr(self, f.name) for f in fields(UncertaintyConfig)})
@@ -94,9 +98,17 @@ class DenoisingSignal(AssistanceSignal):
         self.estimator = UncertaintyEstimator(self.config.uncertainty())
 
     def score(self, batch: SignalInput) -> Scores:
-        center = self.policy.normalize_action(batch.current)
+        if self.config.center == "action":  # the action the robot takes next (sampled when not given)
+            action = batch.action if batch.action is not None else self.sample_chunks(batch.obs, 1)[:, 0]
+            center = self.policy.normalize_action(action[:, 0])
+        else:
+            center = self.policy.normalize_action(batch.current)
         result = self.estimator(
-            self.policy.noise_prediction, batch.obs, center, chunk=self.policy.config.action_horizon
+            self.policy.noise_prediction,
+            batch.obs,
+            center,
+            chunk=self.policy.config.action_horizon,
+            alphas_cumprod=self.policy.schedule.alphas_cumprod,
         )
         return Scores(
             result.U.numpy(),

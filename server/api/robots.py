@@ -103,6 +103,10 @@ async def operator_view(robot_id: Id, fleet: FleetDep, _: Viewer) -> OperatorVie
         bodies=_bodies(robot),
         goal=frame.goal if frame else {},
         last_uncertainty=_uncertainty(robot),
+        episode_seed=robot.seed,
+        step=frame.t if frame else None,
+        clock=frame.clock if frame else None,
+        events=robot.events,
     )
 
 

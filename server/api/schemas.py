@@ -153,6 +153,10 @@ class OperatorView(BaseModel):
     bodies: dict[str, PoseOut]
     goal: dict
     last_uncertainty: UncertaintyOut | None
+    episode_seed: int | None = Field(None, description="the seed of the robot's current episode")
+    step: int | None = Field(None, description="steps since the episode's reset, holds included (frame t)")
+    clock: int | None = Field(None, description="steps that count against the horizon (holds do not)")
+    events: int = Field(0, description="assistance requests in the current episode")
 
 
 class AssistanceRequestOut(BaseModel):

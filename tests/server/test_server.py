@@ -125,7 +125,8 @@ def test_takeover_round_trip_records_a_segment(service):
     assert obs.shape[0] == labels.shape[0] == 3 and np.isfinite(labels).all()
     assert segment.meta["robot"] == 0 and segment.end["status"] == "closed"
     assert [s["command"]["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
-    assert all(set(s["shadow"]) == {"output-variance", "random"} for s in segment.steps)
+    # every score but the denoising U (recorded on its own): the asking signal (spread) and the shadows
+    assert all(set(s["shadow"]) == {"spread", "output-variance", "random"} for s in segment.steps)
     fields = segment.fields
     assert len(fields) == 3 and len(fields[0]["entities"][0]["arrows"]) > 0  # the vector field, for Foxglove
     assert before["episode_id"] == start["episode_id"]
@@ -262,10 +263,13 @@ def test_a_shadow_run_scores_every_step_and_never_asks(tmp_path):
 
 
 def test_the_operator_bot_survives_an_episode_that_ends_mid_takeover(service):
-    from server.operator_bot import OperatorBot, TakeoverOver, ViewTask
+    from server.operator_bot import OperatorBot
+    from sim.view import OperatorView, ViewUnavailable
 
-    with pytest.raises(TakeoverOver):  # the view of a robot with no scene to drive
-        ViewTask({"robot_id": 0, "task": "lift-cube", "mode": "teleop", "pose": None, "gripper": None, "goal": {}})
+    with pytest.raises(ViewUnavailable):  # the view of a robot with no scene to drive
+        OperatorView.from_api(
+            {"robot_id": 0, "task": "lift-cube", "mode": "teleop", "pose": None, "gripper": None, "goal": {}}
+        )
     migrate(service.settings.db_url)
     token = create_token(session_factory(make_engine(service.settings.db_url)), "bot-reset", "operator")
     api = service.url + "/api/v1"

@@ -20,6 +20,7 @@ CALIBRATION_SAMPLES = {
     "thrifty": 12,
     "stac": 3,
     "hula-offline": 12,
+    "spread": 12,
     "full-teleop": 0,
     "random": 0,
 }
@@ -30,6 +31,7 @@ FAST = {  # keep every auxiliary training and calibration tiny
     "thrifty": {"hidden": [16], "bc_steps": 30, "q_steps": 30},
     "stac": {"num_samples": 8},
     "hula-offline": {"hidden": [16], "steps": 30},
+    "spread": {"num_samples": 8, "noise_step": 10},
     "full-teleop": {},
     "random": {"rate": 0.5},
 }
@@ -261,6 +263,11 @@ def test_random_asks_at_its_rate(tiny):
         ("random", {"rate": float("nan")}, "rate"),
         ("denoising", {"backend": "gpu"}, "backend"),
         ("stac", {"bogus": 1}, "unknown"),
+        ("spread", {"noise_step": 0}, "noise_step"),
+        ("spread", {"dims": "xyz"}, "dims"),
+        ("spread", {"novelty_weight": -1}, "novelty_weight"),
+        ("denoising", {"center": "goal"}, "center"),
+        ("denoising", {"directions": "signed"}, "directions"),
     ],
 )
 def test_signal_config_errors_name_the_bad_value(tiny, name, config, match):
@@ -332,3 +339,47 @@ def test_the_denoising_fallback_serves_the_settings_it_was_calibrated_with(tiny,
     save_calibration(tmp_path, {"threshold": 0.3, "uncertainty": {"radius": 7}})
     with pytest.raises(SignalError, match="radius"):
         load_signal(policy, tmp_path, "denoising")
+
+
+def test_spread_matches_the_gaussian_posterior_and_grows_with_the_policys_spread():
+    """For N(mean, std²) the re-noised estimates spread by (1-ᾱ)/ᾱ · (ᾱ std² / (ᾱ std² + 1 - ᾱ))²: more for a
+    wider policy, where the paper's Var_g at k = 0 shrinks."""
+    from policy.signals.spread import renoised_estimates
+
+    policy = GaussianPolicy(chunk=1)
+    k = 30
+    ab = float(policy.schedule.alphas_cumprod[k])
+    std = torch.tensor([0.02, 0.05, 0.1])
+    obs = _obs(std, torch.full((3,), 0.5))
+    center = torch.full((3, 1, 10), 0.5)
+    xi = torch.randn((3, 20000, 1, 10), generator=torch.Generator().manual_seed(0))
+    x0 = renoised_estimates(policy.noise_prediction, obs, center, ab, k, xi)
+    measured = x0.var(dim=1, unbiased=False).mean(dim=(1, 2))
+    expected = (1 - ab) / ab * (ab * std**2 / (ab * std**2 + 1 - ab)) ** 2
+    np.testing.assert_allclose(measured.numpy(), expected.numpy(), rtol=0.03)
+    signal = make_signal("spread", policy, {"num_samples": 256, "noise_step": k, "novelty_weight": 0.0})
+    parts = signal.parts(SignalInput(obs, center[:, 0], np.arange(3), action=center))
+    assert parts["spread"][0] < parts["spread"][1] < parts["spread"][2]
+    assert np.allclose(parts["novelty"], 0.0)  # observations inside the normalizer's range
+    denoising = make_signal("denoising", policy, {"num_samples": 64, "max_modes": 1})
+    var_g = denoising.score(SignalInput(obs, center[:, 0], np.arange(3))).parts["var_g"]
+    assert var_g[0] > var_g[1] > var_g[2]  # the paper's term rewards the sharper policy
+
+
+def test_spread_novelty_counts_only_what_lies_outside_the_training_range(tiny):
+    from policy.signals.spread import observation_novelty
+
+    normalized = torch.tensor([[[0.5, 0.0, 1.0, 0.2]], [[1.5, -0.5, 0.5, 0.5]]])
+    np.testing.assert_allclose(observation_novelty(normalized).numpy(), [0.0, (0.5 + 0.5) / 4])
+
+
+def test_spread_draws_each_robots_noise_from_its_own_stream(tiny):
+    """A robot's score does not depend on which robots share its batch, or where it sits in it."""
+    policy, data = tiny
+    signal = make_signal("spread", policy, {"num_samples": 8, "noise_step": 10})
+    rows = np.arange(4)
+    action = torch.as_tensor(data.val.action[rows])
+    full = signal.score(SignalInput(data.val.obs[rows], data.val.current[rows], np.array([7, 8, 9, 10]), action=action))
+    signal.reset()
+    alone = signal.score(SignalInput(data.val.obs[2:3], data.val.current[2:3], np.array([9]), action=action[2:3]))
+    np.testing.assert_allclose(alone.parts["spread"], full.parts["spread"][2:3], rtol=1e-5)

@@ -1,0 +1,160 @@
+"""``hitl bench hitl``: the human-in-the-loop benchmark (``policy.hitl_bench``), printed as JSON."""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+import shlex
+import sys
+from pathlib import Path
+
+LIFT_SHIFTS = ("lift-nut", "lift-hammer", "lift-hook")
+TASKS = (*LIFT_SHIFTS, "cup-stack", "open-drawer")
+POLICY_OF = {"lift-cube": "lift-cube", **{t: "lift-cube" for t in LIFT_SHIFTS}, "cup-stack": "cup-stack"}
+POLICY_OF["open-drawer"] = "open-drawer"
+
+
+def _policies(args: argparse.Namespace, tasks: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    given = {}
+    for pair in args.policy or []:
+        task, sep, folder = pair.partition("=")
+        if not sep:
+            raise ValueError(f"--policy expects task=folder, got {pair!r}")
+        given[task] = folder
+    out = {}
+    for t in tasks:
+        if t in given:
+            out[t] = given[t]
+        elif t in POLICY_OF:
+            out[t] = str(Path(args.policy_root) / POLICY_OF[t])
+        else:
+            raise ValueError(f"no policy for task {t!r}: pass --policy {t}=FOLDER")
+    for t, folder in out.items():
+        if not (Path(folder) / "config.json").is_file():
+            raise ValueError(f"{folder}: no policy there (for task {t}); train one or pass --policy {t}=FOLDER")
+    return tuple(sorted(out.items()))
+
+
+def recipe_from_args(args: argparse.Namespace):
+    from policy.hitl_bench import DEFAULT_QUANTILES, QUICK_QUANTILES, Recipe, SignalSpec
+    from policy.signals import SIGNALS
+
+    quick = args.quick
+    tasks = tuple(args.tasks or (("lift-hammer",) if quick else TASKS))
+    false_alarm = None if args.false_alarm_task in ("", "none") else args.false_alarm_task
+    signals = args.signals or list(SIGNALS)
+    specs = tuple(SignalSpec.parse(s) for s in signals)
+    for s in specs:
+        if s.name not in SIGNALS:
+            raise KeyError(f"unknown signal {s.name!r}; registered signals: {', '.join(SIGNALS)}")
+    quantiles = tuple(args.quantiles or (QUICK_QUANTILES if quick else DEFAULT_QUANTILES))
+    episodes = args.episodes or (4 if quick else 20)
+    all_tasks = tasks + ((false_alarm,) if false_alarm and false_alarm not in tasks else ())
+    return Recipe(
+        policies=_policies(args, all_tasks),
+        tasks=tasks,
+        signals=specs,
+        quantiles=quantiles,
+        false_alarm_task=false_alarm,
+        episodes=episodes,
+        seed=args.seed,
+        reference_episodes=args.reference_episodes or (4 if quick else 10),
+        reference_seed=args.reference_seed,
+        budget=args.budget,
+        envs=args.envs or episodes,
+        sweep=not args.no_sweep,
+        shadow=not args.no_shadow,
+        exhaustive=args.exhaustive,
+    )
+
+
+def _cmd_bench_hitl(args: argparse.Namespace) -> int:
+    from policy.hitl_bench import default_jobs, run_benchmark
+    from policy.hitl_report import summarize
+
+    recipe = recipe_from_args(args)
+    raw = run_benchmark(recipe, args.cache, jobs=args.jobs or default_jobs(), progress=not args.quiet)
+    summary = summarize(raw)
+    summary["provenance"] = {
+        "command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "machine": f"{platform.machine()}, {_cpus()} CPU cores, {platform.python_implementation()} "
+        f"{platform.python_version()}, no GPU used",
+        "date": datetime.date.today().isoformat(),
+        "seeds": [recipe.seed, recipe.seed + recipe.episodes - 1],
+        "reference_seeds": [recipe.reference_seed, recipe.reference_seed + recipe.reference_episodes - 1],
+    }
+    if args.raw:
+        args.raw.parent.mkdir(parents=True, exist_ok=True)
+        args.raw.write_text(json.dumps(raw))
+    if args.report:
+        from policy.hitl_docs import write_report
+
+        summary["report"] = str(write_report(summary, raw, args.report, args.figures, args.section))
+    print(json.dumps(summary, indent=None if args.json else 2))
+    return 0
+
+
+def _cmd_bench_hitl_service(args: argparse.Namespace) -> int:
+    from server.bench_hitl_service import bench_hitl_service
+
+    out = bench_hitl_service(args.task, args.policy, args.episodes, args.signal, args.budget, not args.quiet)
+    out["command"] = "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    print(json.dumps(out, indent=None if args.json else 2))
+    return 0 if out["identical"] else 1
+
+
+def _cpus() -> int:
+    import os
+
+    return os.cpu_count() or 1
+
+
+def register(bench: argparse._SubParsersAction) -> None:
+    from policy.hitl_bench import VERSION
+
+    q = bench.add_parser(
+        "hitl",
+        help="human-assisted steps per episode to reach success, per task and assistance signal (the paper's table)",
+        description=f"benchmark format {VERSION}; results are cached per cell under --cache, so reruns are incremental",
+    )
+    q.add_argument("--quick", action="store_true", help="lift-hammer only, 4 episodes, 3 thresholds (minutes)")
+    q.add_argument("--tasks", nargs="+", default=None, help=f"default: {' '.join(TASKS)}")
+    q.add_argument("--false-alarm-task", default="lift-cube", help="in-distribution task for false alarms ('none')")
+    q.add_argument("--signals", nargs="+", default=None, help="registered signals, NAME:key=value for variants")
+    q.add_argument("--policy-root", default="runs", help="folder holding lift-cube/, cup-stack/, open-drawer/")
+    q.add_argument("--policy", nargs="+", metavar="TASK=FOLDER", help="the policy for a task (overrides the root)")
+    q.add_argument("--quantiles", nargs="+", type=float, default=None, help="threshold grid (reference quantiles)")
+    q.add_argument("--episodes", type=int, default=None, help="episodes per task (default 20; --quick 4)")
+    q.add_argument("--seed", type=int, default=1000, help="first evaluation seed")
+    q.add_argument("--reference-episodes", type=int, default=None, help="reference rollouts per policy (default 10)")
+    q.add_argument("--reference-seed", type=int, default=5000)
+    q.add_argument("--budget", type=int, default=4, help="operator steps per assistance request")
+    q.add_argument("--envs", type=int, default=None, help="robots stepped together (default: all episodes)")
+    q.add_argument("--jobs", type=int, default=None, help="worker processes (default: up to 2)")
+    q.add_argument("--cache", type=Path, default=Path("runs/bench-hitl"), help="cell results cache")
+    q.add_argument("--no-sweep", action="store_true", help="only each signal's own calibration")
+    q.add_argument("--exhaustive", action="store_true", help="sweep every threshold (default: stop at 100%% success)")
+    q.add_argument("--no-shadow", action="store_true", help="skip the shadow runs (false alarms, diagnostics)")
+    q.add_argument("--raw", type=Path, default=None, help="also write every cell's raw result here")
+    q.add_argument("--report", type=Path, default=None, help="write the markdown report here")
+    q.add_argument("--figures", type=Path, default=Path("docs/img"), help="figures folder for --report")
+    q.add_argument("--section", default="main", help="the report section this run writes (ablations apart)")
+    q.add_argument("--json", action="store_true", help="one line of JSON")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_hitl)
+
+    q = bench.add_parser(
+        "hitl-service",
+        help="one task of the HitL benchmark through hitl serve and hitl operator-bot, against the same seeds "
+        "in process (exit 1 when the numbers differ)",
+    )
+    q.add_argument("--task", default="lift-hammer")
+    q.add_argument("--policy", type=Path, default=Path("runs/lift-cube"))
+    q.add_argument("--signal", default="spread")
+    q.add_argument("--episodes", type=int, default=8, help="robots, one episode each")
+    q.add_argument("--budget", type=int, default=4)
+    q.add_argument("--json", action="store_true", help="one line of JSON")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_hitl_service)

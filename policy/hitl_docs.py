@@ -1,0 +1,265 @@
+"""The markdown and figures of a ``hitl bench hitl`` run (``--report docs/benchmarks.md``).
+
+Figures (into ``--figures``): one success-vs-assisted-steps curve per task, and one timeline per task
+showing where on the trajectory every signal fires in the shadow runs. Each figure's footer states
+the command, seeds, machine and date.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from policy.hitl_bench import FULL_TELEOP, RANDOM, quantile_label, shadow_scores, thresholds_from  # noqa: E402
+from policy.hitl_report import PAPER  # noqa: E402
+
+PAPER_COLUMN = {"lift-nut": "lift", "lift-hammer": "lift", "lift-hook": "lift"}
+FIRE_QUANTILE = 0.95  # the timelines mark steps above this quantile of the reference scores
+
+
+def _footer(fig, summary: dict) -> None:
+    p = summary.get("provenance", {})
+    fig.text(
+        0.01,
+        0.005,
+        f"{p.get('command', '')}\nseeds {p.get('seeds')}, {p.get('machine', '')}, {p.get('date', '')}",
+        fontsize=6,
+        color="0.35",
+        va="bottom",
+    )
+
+
+def plot_curves(summary: dict, out_dir: Path, prefix: str = "hitl") -> list[Path]:
+    out = []
+    for task, row in summary["tasks"].items():
+        fig, ax = plt.subplots(figsize=(7, 4.6))
+        for s, r in sorted(row["signals"].items()):
+            pts = r["curve"] + ([r["default"]] if r["default"] else [])
+            if not pts:
+                continue
+            pts = sorted(pts, key=lambda p: p["assisted_steps"])
+            x = [p["assisted_steps"] for p in pts]
+            y = [100 * p["success_rate"] for p in pts]
+            if s == FULL_TELEOP:
+                ax.scatter(x, y, marker="*", s=120, color="black", label=s, zorder=5)
+                continue
+            style = "--" if s == RANDOM else "-"
+            (line,) = ax.plot(x, y, style, marker="o", ms=3, lw=1.2, label=s)
+            if r["default"]:
+                d = r["default"]
+                ax.scatter([d["assisted_steps"]], [100 * d["success_rate"]], marker="s", s=36, color=line.get_color())
+        ax.set_xlabel("human-assisted steps per episode")
+        ax.set_ylabel("success rate (%)")
+        ax.set_ylim(-3, 103)
+        ax.set_title(f"{task}: success vs assisted steps (threshold sweep; square: own calibration)", fontsize=9)
+        ax.legend(fontsize=7, loc="lower right")
+        ax.grid(alpha=0.3)
+        fig.subplots_adjust(bottom=0.2)
+        _footer(fig, summary)
+        path = out_dir / f"{prefix}-curve-{task}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        out.append(path)
+    return out
+
+
+def _fire_thresholds(raw: dict) -> dict[tuple[str, str], float]:
+    """(policy, signal) -> the ``FIRE_QUANTILE`` of its scores on the policy's reference rollouts."""
+    out = {}
+    for policy, ref in raw["reference"].items():
+        labels = {k for e in ref["episodes"] for k in e["scores"]}
+        for s in labels:
+            value = thresholds_from(shadow_scores(ref, s), (FIRE_QUANTILE,)).get(quantile_label(FIRE_QUANTILE))
+            if value is not None and s not in (FULL_TELEOP, RANDOM):
+                out[(policy, s)] = value
+    return out
+
+
+def plot_timelines(summary: dict, raw: dict, out_dir: Path, prefix: str = "hitl") -> list[Path]:
+    """Per task: for every signal, the share of shadow episodes (the policy alone) whose score is above
+    the signal's reference 95% quantile at each step, failed and successful episodes apart."""
+    thresholds = _fire_thresholds(raw)
+    policies = raw["recipe"]["policies"]
+    out = []
+    for task, shadow in raw["shadow"].items():
+        eps = shadow["episodes"]
+        signals = [s for s in sorted(eps[0]["scores"]) if (policies[task], s) in thresholds] if eps else []
+        if not signals:
+            continue
+        horizon = max(len(e["scores"][signals[0]]) for e in eps)
+        fig, axes = plt.subplots(len(signals), 1, figsize=(8, 1.1 * len(signals) + 1.2), sharex=True, squeeze=False)
+        for ax, s in zip(axes[:, 0], signals, strict=True):
+            thr = thresholds[(policies[task], s)]
+            for success, colour in ((False, "tab:red"), (True, "tab:green")):
+                group = [e for e in eps if e["success"] == success]
+                if not group:
+                    continue
+                fired = np.full((len(group), horizon), np.nan)
+                for i, e in enumerate(group):
+                    v = np.asarray(e["scores"][s], dtype=np.float64)
+                    fired[i, : len(v)] = v > thr
+                with np.errstate(invalid="ignore"):  # steps after every episode of the group ended
+                    share = np.nansum(fired, axis=0) / np.maximum((~np.isnan(fired)).sum(axis=0), 1)
+                name = "failed" if not success else "succeeded"
+                ax.plot(share, color=colour, lw=1, label=f"{name} ({len(group)})")
+            ax.set_ylim(-0.05, 1.05)
+            ax.set_ylabel(s, rotation=0, ha="right", fontsize=7)
+            ax.tick_params(labelsize=6)
+        axes[0, 0].legend(fontsize=6, loc="upper right")
+        axes[0, 0].set_title(
+            f"{task}: share of autonomous episodes where each signal fires (above its reference 95% quantile)",
+            fontsize=8,
+        )
+        axes[-1, 0].set_xlabel("control step")
+        fig.subplots_adjust(left=0.22, bottom=0.16, hspace=0.25)
+        _footer(fig, summary)
+        path = out_dir / f"{prefix}-timeline-{task}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        out.append(path)
+    return out
+
+
+def _fmt(point: dict | None) -> str:
+    return "—" if point is None else f"{point['assisted_steps']:.1f}"
+
+
+def markdown(summary: dict, figures: list[Path], report: Path) -> str:
+    tasks = list(summary["tasks"])
+    p = summary.get("provenance", {})
+    lines = [
+        "<!-- written by `hitl bench hitl --report`; do not edit by hand -->",
+        "",
+        f"Command: `{p.get('command', '')}`  ",
+        f"Seeds {p.get('seeds')} (reference rollouts {p.get('reference_seeds')}); {p.get('machine', '')}; "
+        f"{p.get('date', '')}; recipe {summary['recipe_hash']}.",
+        "",
+        "### Fewest human-assisted steps per episode for 100% success (95% in brackets)",
+        "",
+        "| signal | " + " | ".join(tasks) + " |",
+        "|---|" + "---|" * len(tasks),
+    ]
+    signals = sorted({s for t in tasks for s in summary["tasks"][t]["signals"]})
+    for s in signals:
+        cells = []
+        for t in tasks:
+            r = summary["tasks"][t]["signals"].get(s)
+            if r is None:
+                cells.append("")
+            elif r.get("skipped"):
+                cells.append("n/a")
+            else:
+                cells.append(f"{_fmt(r['best_100'])} ({_fmt(r['best_95'])})")
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    lines += ["", "— : no threshold of the sweep reached that success rate.", ""]
+    lines += [
+        "### The paper's table beside ours",
+        "",
+        "| signal | paper: Lift / Cup / Drawer | ours: " + " / ".join(tasks) + " |",
+        "|---|---|---|",
+    ]
+    for s, row in PAPER.items():
+        mine = []
+        for t in tasks:
+            r = summary["tasks"][t]["signals"].get(s)
+            mine.append(_fmt(r["best_100"]) if r and not r.get("skipped") else "n/a")
+        lines.append(f"| {s} | {row['lift']} / {row['cup-stack']} / {row['open-drawer']} | " + " / ".join(mine) + " |")
+    lines += [
+        "",
+        "### At each signal's own calibration",
+        "",
+        "| signal | " + " | ".join(tasks) + " |",
+        "|---|" + "---|" * len(tasks),
+    ]
+    for s in signals:
+        cells = []
+        for t in tasks:
+            r = summary["tasks"][t]["signals"].get(s) or {}
+            d = r.get("default")
+            cells.append("n/a" if d is None else f"{100 * d['success_rate']:.0f}% / {d['assisted_steps']:.1f}")
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    lines += ["", "Cells: success rate / assisted steps per episode.", ""]
+    fa = summary.get("false_alarms") or {}
+    if fa.get("signals"):
+        labels = sorted({lab for r in fa["signals"].values() for lab in r["by_threshold"]}, key=lambda x: float(x[1:]))
+        lines += [
+            f"### False alarms on {fa['task']} ({fa['episodes']} episodes that succeed on their own)",
+            "",
+            "| signal | own calibration | " + " | ".join(labels) + " |",
+            "|---|---|" + "---|" * len(labels),
+        ]
+        for s, r in sorted(fa["signals"].items()):
+            own = "—" if r["default"] is None else f"{100 * r['default']:.1f}%"
+            by = [f"{100 * r['by_threshold'][lab]:.1f}%" if lab in r["by_threshold"] else "" for lab in labels]
+            lines.append(f"| {s} | {own} | " + " | ".join(by) + " |")
+        lines.append("")
+    diag = summary.get("diagnostics") or {}
+    if diag.get("tasks"):
+        dt = list(diag["tasks"])
+        lines += [
+            f'### Per-state AUROC for "needs help" (last {diag["window"]} steps before an autonomous failure '
+            "vs every step of episodes the policy completes alone)",
+            "",
+            "| signal | " + " | ".join(dt) + " |",
+            "|---|" + "---|" * len(dt),
+        ]
+        names = sorted({s for t in dt for s in diag["tasks"][t]["auroc"]})
+        for s in names:
+            vals = [diag["tasks"][t]["auroc"].get(s) for t in dt]
+            lines.append(f"| {s} | " + " | ".join("—" if v is None else f"{v:.2f}" for v in vals) + " |")
+        counts = ", ".join(f"{t} {diag['tasks'][t]['positives']}/{diag['tasks'][t]['negatives']}" for t in dt)
+        lines += ["", f"States (positive/negative): {counts}.", ""]
+        lines += [
+            "### Where each score peaks (median step of its maximum over the autonomous episodes, and that "
+            "step as a share of the episode)",
+            "",
+            "| signal | " + " | ".join(dt) + " |",
+            "|---|" + "---|" * len(dt),
+        ]
+        for s in names:
+            cells = []
+            for t in dt:
+                p = diag["tasks"][t].get("peak_step", {}).get(s) or {}
+                cells.append(f"{p['median_step']:.0f} ({100 * p['median_share']:.0f}%)" if p else "—")
+            lines.append(f"| {s} | " + " | ".join(cells) + " |")
+        lines.append("")
+    if figures:
+        lines += ["### Figures", ""]
+        for f in figures:
+            rel = Path(f).resolve().relative_to(report.parent.resolve()) if _under(f, report.parent) else f
+            lines.append(f"![{Path(f).stem}]({rel})")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _under(path: Path, folder: Path) -> bool:
+    try:
+        Path(path).resolve().relative_to(Path(folder).resolve())
+        return True
+    except ValueError:
+        return False
+
+
+def write_report(summary: dict, raw: dict, report: Path, figures_dir: Path, section: str = "main") -> Path:
+    """Writes the figures and the generated ``section`` of ``report``: the text between its markers
+    is replaced and the hand-written text around them kept; a report without them gets them appended."""
+    figures_dir.mkdir(parents=True, exist_ok=True)
+    prefix = "hitl" if section == "main" else f"hitl-{section}"
+    figures = plot_curves(summary, figures_dir, prefix) + plot_timelines(summary, raw, figures_dir, prefix)
+    body = markdown(summary, figures, report)
+    begin, end = f"<!-- hitl-bench:{section}:begin -->", f"<!-- hitl-bench:{section}:end -->"
+    report.parent.mkdir(parents=True, exist_ok=True)
+    text = report.read_text() if report.is_file() else ""
+    if begin in text and end in text:
+        head, rest = text.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        text = f"{head}{begin}\n{body}\n{end}{tail}"
+    else:
+        text = f"{text}{begin}\n{body}\n{end}\n"
+    report.write_text(text)
+    return report
