@@ -75,7 +75,11 @@ def _cmd_bench_hitl(args: argparse.Namespace) -> int:
     from policy.hitl_report import summarize
 
     recipe = recipe_from_args(args)
-    raw = run_benchmark(recipe, args.cache, jobs=args.jobs or default_jobs(), progress=not args.quiet)
+    raw = run_benchmark(
+        recipe, args.cache, jobs=args.jobs or default_jobs(), progress=not args.quiet, cached_only=args.cached_only
+    )
+    if raw.get("pending_references"):
+        raise ValueError(f"--cached-only: the reference rollouts of {raw['pending_references']} have not run yet")
     summary = summarize(raw)
     summary["provenance"] = {
         "command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
@@ -135,6 +139,7 @@ def register(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--jobs", type=int, default=None, help="worker processes (default: up to 2)")
     q.add_argument("--cache", type=Path, default=Path("runs/bench-hitl"), help="cell results cache")
     q.add_argument("--no-sweep", action="store_true", help="only each signal's own calibration")
+    q.add_argument("--cached-only", action="store_true", help="run nothing: report the cells cached so far")
     q.add_argument("--exhaustive", action="store_true", help="sweep every threshold (default: stop at 100%% success)")
     q.add_argument("--no-shadow", action="store_true", help="skip the shadow runs (false alarms, diagnostics)")
     q.add_argument("--raw", type=Path, default=None, help="also write every cell's raw result here")

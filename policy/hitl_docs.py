@@ -153,10 +153,18 @@ def markdown(summary: dict, figures: list[Path], report: Path) -> str:
                 cells.append("")
             elif r.get("skipped"):
                 cells.append("n/a")
+            elif r.get("pending") and r["best_100"] is None:
+                cells.append(f"pending ({_fmt(r['best_95'])})")
             else:
                 cells.append(f"{_fmt(r['best_100'])} ({_fmt(r['best_95'])})")
         lines.append(f"| {s} | " + " | ".join(cells) + " |")
-    lines += ["", "— : no threshold of the sweep reached that success rate.", ""]
+    lines += ["", "— : no threshold of the sweep reached that success rate."]
+    if summary.get("pending_cells"):
+        lines.append(
+            f"pending: {summary['pending_cells']} cells of the sweep had not run when this was written "
+            "(a report of a run in progress, `--cached-only`)."
+        )
+    lines.append("")
     lines += [
         "### The paper's table beside ours",
         "",

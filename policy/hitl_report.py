@@ -56,7 +56,8 @@ def summarize(raw: dict) -> dict:
     tasks: dict[str, dict] = {t: {"signals": {}} for t in recipe["tasks"]}
     for entry in raw["assisted"]:
         t, s = entry["task"], entry["signal"]
-        row = tasks[t]["signals"].setdefault(s, {"default": None, "curve": [], "skipped": None})
+        row = tasks[t]["signals"].setdefault(s, {"default": None, "curve": [], "skipped": None, "pending": 0})
+        row["pending"] += int(bool(entry.get("pending")))
         res = entry["result"]
         if res is not None and "skipped" in res and "episodes" not in res:
             row["skipped"] = res["skipped"]
@@ -80,6 +81,7 @@ def summarize(raw: dict) -> dict:
     return {
         "recipe": recipe,
         "recipe_hash": raw["recipe_hash"],
+        "pending_cells": raw.get("pending_cells", 0),
         "tasks": tasks,
         "false_alarms": false_alarms(raw),
         "diagnostics": diagnostics(raw),

@@ -116,3 +116,16 @@ def test_bench_hitl_quick_runs_a_tiny_configuration_through_the_controller(tmp_p
     again = json.loads(capsys.readouterr().out)
     assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == files
     assert again["tasks"] == out["tasks"] and again["diagnostics"] == out["diagnostics"]
+    # --cached-only reports a run in progress without running anything: here, nothing is missing
+    assert main([*argv, "--cached-only"]) == 0
+    cached = json.loads(capsys.readouterr().out)
+    assert cached["tasks"] == out["tasks"] and cached["pending_cells"] == 0
+
+
+def test_cached_only_reports_what_has_not_run_yet(tmp_path, capsys):
+    folder = tiny_policy_folder(tmp_path / "lift", "lift-cube", threshold=1e9)
+    argv = ["bench", "hitl", "--tasks", "lift-hammer", "--policy", f"lift-hammer={folder}", f"lift-cube={folder}"]
+    argv += ["--signals", "random", "--episodes", "1", "--reference-episodes", "1", "--quantiles", "0.5"]
+    argv += ["--cache", str(tmp_path / "cache"), "--cached-only", "--json", "--quiet"]
+    assert main(argv) == 2  # nothing has run: the sweep's thresholds are not known yet
+    assert "reference rollouts" in capsys.readouterr().err
