@@ -127,7 +127,12 @@ def register(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--tasks", nargs="+", default=None, help=f"default: {' '.join(TASKS)}")
     q.add_argument("--false-alarm-task", default="lift-cube", help="in-distribution task for false alarms ('none')")
     q.add_argument("--signals", nargs="+", default=None, help="registered signals, NAME:key=value for variants")
-    q.add_argument("--policy-root", default="runs", help="folder holding lift-cube/, cup-stack/, open-drawer/")
+    q.add_argument(
+        "--policy-root",
+        default="policies",
+        help="folder holding lift-cube/, cup-stack/, open-drawer/ (default: the bundled policies; "
+        "signals without files there are skipped and named)",
+    )
     q.add_argument("--policy", nargs="+", metavar="TASK=FOLDER", help="the policy for a task (overrides the root)")
     q.add_argument("--quantiles", nargs="+", type=float, default=None, help="threshold grid (reference quantiles)")
     q.add_argument("--episodes", type=int, default=None, help="episodes per task (default 20; --quick 4)")

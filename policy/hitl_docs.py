@@ -7,6 +7,7 @@ the command, seeds, machine and date.
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -24,10 +25,11 @@ FIRE_QUANTILE = 0.95  # the timelines mark steps above this quantile of the refe
 
 def _footer(fig, summary: dict) -> None:
     p = summary.get("provenance", {})
+    command = "\n".join(textwrap.wrap(p.get("command", ""), 140))
     fig.text(
         0.01,
         0.005,
-        f"{p.get('command', '')}\nseeds {p.get('seeds')}, {p.get('machine', '')}, {p.get('date', '')}",
+        f"{command}\nseeds {p.get('seeds')}, {p.get('machine', '')}, {p.get('date', '')}",
         fontsize=6,
         color="0.35",
         va="bottom",
@@ -57,7 +59,8 @@ def plot_curves(summary: dict, out_dir: Path, prefix: str = "hitl") -> list[Path
         ax.set_ylabel("success rate (%)")
         ax.set_ylim(-3, 103)
         ax.set_title(f"{task}: success vs assisted steps (threshold sweep; square: own calibration)", fontsize=9)
-        ax.legend(fontsize=7, loc="lower right")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7, loc="lower right")
         ax.grid(alpha=0.3)
         fig.subplots_adjust(bottom=0.2)
         _footer(fig, summary)
@@ -189,7 +192,10 @@ def markdown(summary: dict, figures: list[Path], report: Path) -> str:
         for t in tasks:
             r = summary["tasks"][t]["signals"].get(s) or {}
             d = r.get("default")
-            cells.append("n/a" if d is None else f"{100 * d['success_rate']:.0f}% / {d['assisted_steps']:.1f}")
+            if d is not None:
+                cells.append(f"{100 * d['success_rate']:.0f}% / {d['assisted_steps']:.1f}")
+            else:
+                cells.append("pending" if r.get("pending") and not r.get("skipped") else "n/a")
         lines.append(f"| {s} | " + " | ".join(cells) + " |")
     lines += ["", "Cells: success rate / assisted steps per episode.", ""]
     fa = summary.get("false_alarms") or {}
