@@ -50,7 +50,7 @@ def recipe_from_args(args: argparse.Namespace):
         if s.name not in SIGNALS:
             raise KeyError(f"unknown signal {s.name!r}; registered signals: {', '.join(SIGNALS)}")
     quantiles = tuple(args.quantiles or (QUICK_QUANTILES if quick else DEFAULT_QUANTILES))
-    episodes = args.episodes or (4 if quick else 20)
+    episodes = args.episodes if args.episodes is not None else (4 if quick else 20)
     all_tasks = tasks + ((false_alarm,) if false_alarm and false_alarm not in tasks else ())
     return Recipe(
         policies=_policies(args, all_tasks),
@@ -60,10 +60,10 @@ def recipe_from_args(args: argparse.Namespace):
         false_alarm_task=false_alarm,
         episodes=episodes,
         seed=args.seed,
-        reference_episodes=args.reference_episodes or (4 if quick else 10),
+        reference_episodes=args.reference_episodes if args.reference_episodes is not None else (4 if quick else 10),
         reference_seed=args.reference_seed,
         budget=args.budget,
-        envs=args.envs or episodes,
+        envs=args.envs if args.envs is not None else max(episodes, 1),
         sweep=not args.no_sweep,
         shadow=not args.no_shadow,
         exhaustive=args.exhaustive,
@@ -102,6 +102,20 @@ def _cmd_bench_hitl(args: argparse.Namespace) -> int:
 
 def _cmd_bench_hitl_service(args: argparse.Namespace) -> int:
     from server.bench_hitl_service import bench_hitl_service
+    from sim.registry import TASKS
+
+    if args.task not in TASKS:
+        raise ValueError(f"unknown task {args.task!r}; tasks: {', '.join(TASKS)}")
+    if not (args.policy / "config.json").is_file():
+        raise ValueError(f"{args.policy}: no policy there (config.json not found)")
+    if args.episodes < 1 or args.budget < 1:
+        raise ValueError("--episodes and --budget must be >= 1")
+    from policy.checkpoint import load_policy
+    from policy.signals import load_signal
+    from policy.signals.registry import signal_class
+
+    signal_class(args.signal)  # an unknown name is named with the registered ones
+    load_signal(load_policy(args.policy)[0], args.policy, args.signal)  # a missing calibration, before serving
 
     out = bench_hitl_service(args.task, args.policy, args.episodes, args.signal, args.budget, not args.quiet)
     out["command"] = "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:])
