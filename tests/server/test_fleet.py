@@ -346,3 +346,22 @@ def test_a_lease_that_runs_out_while_paused_ends_that_takeover(tmp_path):
     fleet.tick()
     rows = _segments(fleet)
     assert [(r.operator, r.ended_by) for r in rows] == [("alice", "lease-expired"), ("bob", None)]
+
+
+def test_freeze_idle_steps_a_waiting_or_idle_teleop_robot_only_on_its_operators_commands(tmp_path):
+    """With ``freeze_idle`` the scene of a robot that waits for its operator (or for the next command)
+    waits too: the asking step's hold is the only hold it gets, so its numbers do not depend on latency."""
+    fleet, workers = _fleet(tmp_path, freeze_idle=True, budget_steps=2, cooldown_steps=0)
+    fleet.tick()  # threshold -1: the robot asks at once; that step's hold is sent
+    assert fleet.view(0).mode == "waiting" and len(workers[0].actions) == 1
+    clock = fleet.view(0).frame.clock
+    for _ in range(3):  # nobody has claimed it: not stepped, its frame stays the current one
+        fleet.tick()
+    assert len(workers[0].actions) == 1 and fleet.view(0).frame.clock == clock
+    fleet.claim(0, "op")
+    fleet.tick()  # under teleop without a command: still not stepped
+    assert len(workers[0].actions) == 1
+    fleet.command(0, "op", UP)
+    fleet.tick()
+    assert len(workers[0].actions) == 2 and fleet.view(0).assisted_steps == 1
+    fleet.stop()
