@@ -25,7 +25,7 @@ FIRE_QUANTILE = 0.95  # the timelines mark steps above this quantile of the refe
 
 def _footer(fig, summary: dict) -> None:
     p = summary.get("provenance", {})
-    command = "\n".join(textwrap.wrap(p.get("command", ""), 140))
+    command = "\n".join(textwrap.wrap(p.get("command", ""), 110))
     fig.text(
         0.01,
         0.005,

@@ -22,12 +22,12 @@ The observation term is how far the (normalized) observation lies outside the ra
 was trained on, in units of that range, averaged over dimensions: 0 inside the training data's
 box. It is what tells a state the policy never saw from one it saw and is merely unsure about.
 
-    score = spread / spread_scale + novelty_weight · novelty
+    score = spread / spread_scale + novelty_weight · novelty  (+ hover_weight · hover / hover_scale)
 
 ``spread_scale`` is the median spread on held-out demonstrations (set by ``calibrate``, so the
 two terms are in comparable units); the threshold is the ``quantile`` of the score there.
-Cost: one noise-network call on S rows per robot (the paper's metric makes the same call and then
-fits mixtures), no extra sampling when the controller passes the robot's chunk.
+Cost: one noise-network call on S = 32 rows per robot (the paper's metric: 128 rows, then mixture
+fits), and no extra sampling when the controller passes the robot's chunk.
 """
 
 from __future__ import annotations
@@ -62,7 +62,9 @@ DIMS = {"pos": POS, "all": slice(None)}
 class SpreadConfig(SignalConfig):
     """num_samples: S re-noisings of the next action; noise_step: k of the schedule's
     ``num_train_steps``; dims: action dimensions whose spread counts ("pos" or "all");
-    novelty_weight: weight of the observation-novelty term (0: the field alone)."""
+    novelty_weight: weight of the observation-novelty term (0: the field alone); hover_weight: weight
+    of the optional unit-direction term of the k = 0 field over a ball of ``radius`` around the current
+    pose (0, off: tried and set aside on development seeds, docs/spread.md). Defaults as chosen there."""
 
     num_samples: int = 32
     noise_step: int = 60
