@@ -18,7 +18,6 @@ merely close:
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import tempfile
@@ -28,9 +27,8 @@ from pathlib import Path
 
 from sqlalchemy import select
 
-from server.auth import create_token
-from server.bench_loop import _free_port, _wait_ready
-from server.db import EpisodeRecord, make_engine, migrate, session_factory
+from server.bench_loop import _wait_ready, launch_service
+from server.db import EpisodeRecord
 from server.operator_bot import OperatorBot
 from server.recording import FINISHED
 from server.settings import Settings
@@ -66,15 +64,8 @@ def run_service(
     config = data_dir / "fleet.toml"
     _config(config, task, policy, episodes, signal, budget, data_dir / "var")
     settings = Settings.load(config)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    migrate(settings.db_url)
-    sessions = session_factory(make_engine(settings.db_url))
-    token = create_token(sessions, f"bench-bot-{time.time_ns()}", "operator")
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}"
-    cmd = [sys.executable, "-m", "hitl.cli", "serve", "--config", str(config), "--port", str(port)]
     seeds = set(fleet_seeds(settings.seed, episodes))
-    proc = subprocess.Popen(cmd, env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc, url, sessions, token = launch_service(config, settings)
     bot = OperatorBot(url, token)
     stop = threading.Event()
     thread = threading.Thread(target=bot.run, kwargs={"stop": stop.is_set, "idle_sleep": 0.02}, daemon=True)

@@ -54,6 +54,20 @@ def _wait_ready(url: str, proc: subprocess.Popen, timeout: float) -> None:
     raise RuntimeError(f"the service was not ready after {timeout:.0f} s")
 
 
+def launch_service(config: Path, settings: Settings, env: dict[str, str] | None = None):
+    """Prepares ``settings``' database and an operator token for the bot, then starts
+    ``hitl serve --config config`` on a free 127.0.0.1 port with ``env`` on top of this process's
+    environment. Returns (process, url, sessions, token); the service is not ready yet (``_wait_ready``)."""
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    migrate(settings.db_url)
+    sessions = session_factory(make_engine(settings.db_url))
+    token = create_token(sessions, f"bench-bot-{time.time_ns()}", "operator")
+    port = _free_port()
+    cmd = [sys.executable, "-m", "hitl.cli", "serve", "--config", str(config), "--port", str(port)]
+    proc = subprocess.Popen(cmd, env=os.environ | (env or {}), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return proc, f"http://127.0.0.1:{port}", sessions, token
+
+
 def run_loop(
     seconds: float,
     mode: str = "continuous",
@@ -69,15 +83,8 @@ def run_loop(
     data_dir = Path(tempfile.mkdtemp(prefix="hitl-loop-")) if data_dir is None else Path(data_dir)
     overrides = {"HITL_DATA_DIR": str(data_dir), "HITL_TRIGGER_MODE": mode, **(env or {})}
     settings = Settings.load(config, data_dir=data_dir, trigger_mode=mode)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    migrate(settings.db_url)
-    sessions = session_factory(make_engine(settings.db_url))
-    token = create_token(sessions, f"bench-bot-{time.time_ns()}", "operator")
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}"
-    cmd = [sys.executable, "-m", "hitl.cli", "serve", "--config", str(config), "--port", str(port)]
     since = datetime.now(UTC)  # only this run's episodes and takeovers are reported (the folder may be reused)
-    proc = subprocess.Popen(cmd, env=os.environ | overrides, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc, url, sessions, token = launch_service(config, settings, overrides)
     operator = OperatorBot(url, token) if bot else None
     stop = threading.Event()
     try:
