@@ -128,6 +128,11 @@ def plot_timelines(summary: dict, raw: dict, out_dir: Path, prefix: str = "hitl"
     return out
 
 
+def _header(columns: list[str]) -> list[str]:
+    """A markdown table's first two lines: a ``signal`` column, then ``columns``."""
+    return ["| signal | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
+
+
 def _fmt(point: dict | None) -> str:
     return "—" if point is None else f"{point['assisted_steps']:.1f}"
 
@@ -144,8 +149,7 @@ def markdown(summary: dict, figures: list[Path], report: Path) -> str:
         "",
         "### Fewest human-assisted steps per episode for 100% success (95% in brackets)",
         "",
-        "| signal | " + " | ".join(tasks) + " |",
-        "|---|" + "---|" * len(tasks),
+        *_header(tasks),
     ]
     signals = sorted({s for t in tasks for s in summary["tasks"][t]["signals"]})
     for s in signals:
@@ -184,8 +188,7 @@ def markdown(summary: dict, figures: list[Path], report: Path) -> str:
         "",
         "### At each signal's own calibration",
         "",
-        "| signal | " + " | ".join(tasks) + " |",
-        "|---|" + "---|" * len(tasks),
+        *_header(tasks),
     ]
     for s in signals:
         cells = []
@@ -219,8 +222,7 @@ def markdown(summary: dict, figures: list[Path], report: Path) -> str:
             f'### Per-state AUROC for "needs help" (last {diag["window"]} steps before an autonomous failure '
             "vs every step of episodes the policy completes alone)",
             "",
-            "| signal | " + " | ".join(dt) + " |",
-            "|---|" + "---|" * len(dt),
+            *_header(dt),
         ]
         names = sorted({s for t in dt for s in diag["tasks"][t]["auroc"]})
         for s in names:
@@ -232,8 +234,7 @@ def markdown(summary: dict, figures: list[Path], report: Path) -> str:
             "### Where each score peaks (median step of its maximum over the autonomous episodes, and that "
             "step as a share of the episode)",
             "",
-            "| signal | " + " | ".join(dt) + " |",
-            "|---|" + "---|" * len(dt),
+            *_header(dt),
         ]
         for s in names:
             cells = []
