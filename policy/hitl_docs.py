@@ -36,6 +36,14 @@ def _footer(fig, summary: dict) -> None:
     )
 
 
+def _save(fig, summary: dict, path: Path) -> Path:
+    """Adds the provenance footer, writes the figure and closes it."""
+    _footer(fig, summary)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def plot_curves(summary: dict, out_dir: Path, prefix: str = "hitl") -> list[Path]:
     out = []
     for task, row in summary["tasks"].items():
@@ -63,11 +71,7 @@ def plot_curves(summary: dict, out_dir: Path, prefix: str = "hitl") -> list[Path
             ax.legend(fontsize=7, loc="lower right")
         ax.grid(alpha=0.3)
         fig.subplots_adjust(bottom=0.2)
-        _footer(fig, summary)
-        path = out_dir / f"{prefix}-curve-{task}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        out.append(path)
+        out.append(_save(fig, summary, out_dir / f"{prefix}-curve-{task}.png"))
     return out
 
 
@@ -120,11 +124,7 @@ def plot_timelines(summary: dict, raw: dict, out_dir: Path, prefix: str = "hitl"
         )
         axes[-1, 0].set_xlabel("control step")
         fig.subplots_adjust(left=0.22, bottom=0.16, hspace=0.25)
-        _footer(fig, summary)
-        path = out_dir / f"{prefix}-timeline-{task}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        out.append(path)
+        out.append(_save(fig, summary, out_dir / f"{prefix}-timeline-{task}.png"))
     return out
 
 
