@@ -23,22 +23,26 @@ PAPER_COLUMN = {"lift-nut": "lift", "lift-hammer": "lift", "lift-hook": "lift"}
 FIRE_QUANTILE = 0.95  # the timelines mark steps above this quantile of the reference scores
 
 
-def _footer(fig, summary: dict) -> None:
+FOOTER_LINE_IN = 0.11  # height of one footer line (6 pt text) in inches
+
+
+def _footer(fig, summary: dict) -> int:
+    """Writes the provenance footer at the bottom of ``fig``; returns its number of lines."""
     p = summary.get("provenance", {})
-    command = "\n".join(textwrap.wrap(p.get("command", ""), 110))
-    fig.text(
-        0.01,
-        0.005,
-        f"{command}\nseeds {p.get('seeds')}, {p.get('machine', '')}, {p.get('date', '')}",
-        fontsize=6,
-        color="0.35",
-        va="bottom",
-    )
+    lines = [
+        *textwrap.wrap(p.get("command", ""), 110),
+        f"seeds {p.get('seeds')}, {p.get('machine', '')}, {p.get('date', '')}",
+    ]
+    fig.text(0.01, 0.005, "\n".join(lines), fontsize=6, color="0.35", va="bottom")
+    return len(lines)
 
 
-def _save(fig, summary: dict, path: Path) -> Path:
-    """Adds the provenance footer, writes the figure and closes it."""
-    _footer(fig, summary)
+def _save(fig, summary: dict, path: Path, axis_room_in: float = 0.5) -> Path:
+    """Adds the provenance footer, leaves ``axis_room_in`` inches above it for the x axis's ticks and
+    label (so a long command never overlaps them), writes the figure and closes it."""
+    n = _footer(fig, summary)
+    height = fig.get_figheight()
+    fig.subplots_adjust(bottom=(axis_room_in + FOOTER_LINE_IN * n) / height, top=1 - 0.4 / height)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -48,6 +52,8 @@ def plot_curves(summary: dict, out_dir: Path, prefix: str = "hitl") -> list[Path
     out = []
     for task, row in summary["tasks"].items():
         fig, ax = plt.subplots(figsize=(7, 4.6))
+        if len(row["signals"]) > len(plt.get_cmap("tab10").colors):  # one colour per signal
+            ax.set_prop_cycle(color=plt.get_cmap("tab20").colors)
         for s, r in sorted(row["signals"].items()):
             pts = r["curve"] + ([r["default"]] if r["default"] else [])
             if not pts:
@@ -70,7 +76,6 @@ def plot_curves(summary: dict, out_dir: Path, prefix: str = "hitl") -> list[Path
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7, loc="lower right")
         ax.grid(alpha=0.3)
-        fig.subplots_adjust(bottom=0.2)
         out.append(_save(fig, summary, out_dir / f"{prefix}-curve-{task}.png"))
     return out
 
@@ -123,7 +128,7 @@ def plot_timelines(summary: dict, raw: dict, out_dir: Path, prefix: str = "hitl"
             fontsize=8,
         )
         axes[-1, 0].set_xlabel("control step")
-        fig.subplots_adjust(left=0.22, bottom=0.16, hspace=0.25)
+        fig.subplots_adjust(left=0.22, hspace=0.25)
         out.append(_save(fig, summary, out_dir / f"{prefix}-timeline-{task}.png"))
     return out
 
@@ -137,7 +142,8 @@ def _fmt(point: dict | None) -> str:
     return "—" if point is None else f"{point['assisted_steps']:.1f}"
 
 
-def markdown(summary: dict, figures: list[Path], report: Path) -> str:
+def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = True) -> str:
+    """The generated section; ``paper`` adds the paper's table beside ours (the main run's section)."""
     tasks = list(summary["tasks"])
     p = summary.get("provenance", {})
     lines = [
@@ -166,26 +172,50 @@ def markdown(summary: dict, figures: list[Path], report: Path) -> str:
                 cells.append(f"{_fmt(r['best_100'])} ({_fmt(r['best_95'])})")
         lines.append(f"| {s} | " + " | ".join(cells) + " |")
     lines += ["", "— : no threshold of the sweep reached that success rate."]
+    reasons = {
+        r["skipped"]: s
+        for s in signals
+        for t in tasks
+        if (r := summary["tasks"][t]["signals"].get(s) or {}).get("skipped")
+    }
+    lines += [f"n/a ({s}): {why}" for why, s in reasons.items()]
     if summary.get("pending_cells"):
         lines.append(
             f"pending: {summary['pending_cells']} cells of the sweep had not run when this was written "
             "(a report of a run in progress, `--cached-only`)."
         )
     lines.append("")
+    if paper:
+        lines += [
+            "### The paper's table beside ours",
+            "",
+            "| signal | paper: Lift / Cup / Drawer | ours: " + " / ".join(tasks) + " |",
+            "|---|---|---|",
+        ]
+        for s, row in PAPER.items():
+            mine = []
+            for t in tasks:
+                r = summary["tasks"][t]["signals"].get(s)
+                mine.append(_fmt(r["best_100"]) if r and not r.get("skipped") else "n/a")
+            lines.append(
+                f"| {s} | {row['lift']} / {row['cup-stack']} / {row['open-drawer']} | " + " / ".join(mine) + " |"
+            )
+        lines.append("")
+    else:  # a short sweep (the ablations): every point of it, as the curves are too close to read
+        lines += ["### Every threshold of the sweep", "", *_header(tasks)]
+        for s in signals:
+            cells = []
+            for t in tasks:
+                r = summary["tasks"][t]["signals"].get(s) or {}
+                cells.append(
+                    "<br>".join(
+                        f"{c['label']}: {100 * c['success_rate']:.0f}% / {c['assisted_steps']:.1f}"
+                        for c in r.get("curve") or []
+                    )
+                )
+            lines.append(f"| {s} | " + " | ".join(cells) + " |")
+        lines += ["", "Cells: threshold: success rate / assisted steps per episode.", ""]
     lines += [
-        "### The paper's table beside ours",
-        "",
-        "| signal | paper: Lift / Cup / Drawer | ours: " + " / ".join(tasks) + " |",
-        "|---|---|---|",
-    ]
-    for s, row in PAPER.items():
-        mine = []
-        for t in tasks:
-            r = summary["tasks"][t]["signals"].get(s)
-            mine.append(_fmt(r["best_100"]) if r and not r.get("skipped") else "n/a")
-        lines.append(f"| {s} | {row['lift']} / {row['cup-stack']} / {row['open-drawer']} | " + " / ".join(mine) + " |")
-    lines += [
-        "",
         "### At each signal's own calibration",
         "",
         *_header(tasks),
@@ -266,7 +296,7 @@ def write_report(summary: dict, raw: dict, report: Path, figures_dir: Path, sect
     figures_dir.mkdir(parents=True, exist_ok=True)
     prefix = "hitl" if section == "main" else f"hitl-{section}"
     figures = plot_curves(summary, figures_dir, prefix) + plot_timelines(summary, raw, figures_dir, prefix)
-    body = markdown(summary, figures, report)
+    body = markdown(summary, figures, report, paper=section == "main")
     begin, end = f"<!-- hitl-bench:{section}:begin -->", f"<!-- hitl-bench:{section}:end -->"
     report.parent.mkdir(parents=True, exist_ok=True)
     text = report.read_text() if report.is_file() else ""

@@ -100,6 +100,7 @@ def load_signal(policy: DiffusionPolicy, policy_dir: str | Path, name: str) -> A
         signal.calibration = {"threshold": float(calibration["threshold"]), "source": CALIBRATION}
         return signal
     if not path.is_file():
+        make_signal(name, policy)  # a signal that cannot work with this policy says why (SignalError)
         also = f" (or `hitl calibrate --policy {policy_dir}`)" if name == "denoising" else ""
         raise SignalError(f"{path} not found: run `hitl train-signal --policy {policy_dir} --signal {name}`{also}")
     try:

@@ -1,9 +1,11 @@
 import json
+from pathlib import Path
 
 import pytest
 
 from hitl.cli import main
 from policy.hitl_bench import BenchError, Cache, Cell, Recipe, SignalSpec, run_chains
+from policy.hitl_docs import markdown
 from policy.hitl_report import fewest_steps, summarize
 from tests.helpers import tiny_policy_folder
 
@@ -85,6 +87,12 @@ def test_summaries_report_curves_defaults_and_unreached_targets():
     assert s["a"]["best_100"]["assisted_steps"] == 9 and s["a"]["default"]["success_rate"] == 0.5
     assert [p["label"] for p in s["a"]["curve"]] == ["q0.9", "q0.5"]
     assert s["b"]["best_100"] is None and s["b"]["best_95"] is None
+    # the main section puts the paper's table beside ours; an ablation section lists every point instead
+    main_text = markdown(summarize(raw), [], Path("report.md"))
+    ablation = markdown(summarize(raw), [], Path("report.md"), paper=False)
+    assert "The paper's table" in main_text and "Every threshold" not in main_text
+    assert "The paper's table" not in ablation
+    assert "| a | q0.9: 100% / 9.0<br>q0.5: 100% / 30.0 |" in ablation
 
 
 def test_bench_hitl_quick_runs_a_tiny_configuration_through_the_controller(tmp_path, capsys):

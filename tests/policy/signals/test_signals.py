@@ -184,9 +184,12 @@ def test_stac_score_is_higher_when_consecutive_chunks_disagree():
     assert s3.parts["step"][1] == 0 and s3.value[1] == 0  # a reset robot starts a new episode
 
 
-def test_stac_needs_a_chunked_policy():
+def test_stac_needs_a_chunked_policy(tmp_path):
     with pytest.raises(SignalError, match="action_horizon > 1"):
         make_signal("stac", GaussianPolicy(chunk=1))
+    # loading says why it cannot work rather than asking for a training that would fail the same way
+    with pytest.raises(SignalError, match="action_horizon > 1"):
+        load_signal(GaussianPolicy(chunk=1), tmp_path, "stac")
 
 
 def test_rbf_mmd_is_zero_for_identical_sets_and_grows_with_shift():
