@@ -24,7 +24,7 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.api import assistance, records, robots, system, ws_messages
+from server.api import assistance, console, records, robots, system, ws_messages
 from server.api.schemas import ErrorOut, FieldError
 from server.auth import TokenCache
 from server.db import make_engine, migrate, session_factory
@@ -32,6 +32,7 @@ from server.errors import ServiceError
 from server.fleet import Fleet
 from server.recording import recover
 from server.settings import Settings
+from web.sessions import ConsoleSessions
 
 log = logging.getLogger("hitl.server")
 API_PREFIX = "/api/v1"
@@ -187,6 +188,7 @@ def create_app(settings: Settings) -> FastAPI:
         fleet = Fleet(settings, sessions)
         app.state.settings, app.state.sessions, app.state.fleet = settings, sessions, fleet
         app.state.tokens = TokenCache(sessions)
+        app.state.console_sessions = ConsoleSessions()
         fleet.start()
         log.info("fleet of %d robot(s) started; ready once its control loop has ticked", len(fleet.robots))
         announcer = asyncio.create_task(announce_ready(app))
@@ -221,6 +223,7 @@ def create_app(settings: Settings) -> FastAPI:
 
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.include_router(system.router)
+    app.include_router(console.router)
     for router in (robots.router, assistance.router, records.router, system.api):
         app.include_router(router, prefix=API_PREFIX)
     _add_docs(app)

@@ -37,6 +37,11 @@ async def _lookup(cache: TokenCache, token: str | None) -> Principal | None:
     return principal if known else await run_in_threadpool(cache.authenticate, token)
 
 
+async def lookup_principal(app, token: str | None) -> Principal | None:
+    """The principal of an API token, through the app's token cache (the console's log-in uses it)."""
+    return await _lookup(app.state.tokens, token)
+
+
 async def _principal(request: Request, creds: HTTPAuthorizationCredentials | None) -> Principal:
     principal = await _lookup(request.app.state.tokens, creds.credentials if creds else None)
     if principal is None:
