@@ -231,6 +231,10 @@ class Controller:
         r.history.clear()
         r.queue.clear()
 
+    def teleop_left(self, robot_id: int) -> int | None:
+        """Operator steps left before a budgeted hand-back (None: not under teleop, or continuous mode)."""
+        return self._robot(robot_id).teleop_left
+
     def hold_here(self, robot_id: int, hold: np.ndarray) -> None:
         """A robot waiting or under teleop holds ``hold`` (10,) until its next command."""
         self._robot(robot_id).hold = np.asarray(hold, np.float64).copy()

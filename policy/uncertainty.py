@@ -96,17 +96,18 @@ class UncertaintyResult:
 
     def to_world(self, normalizer) -> WorldField:
         """The probe samples in metres (world frame) and the denoising directions (-ε, rescaled per
-        axis from the normalized action space by ``normalizer``, the policy's action normalizer), for
-        the console's and the segments' arrows."""
+        axis from the normalized action space by ``normalizer``, the policy's action normalizer) of the
+        samples and of the mode means, for the console's and the segments' arrows."""
         low = normalizer.low[POS].numpy().astype(np.float64)
         span = normalizer.span[POS].numpy().astype(np.float64)
-        return WorldField(self.samples * span + low, -self.vectors * span, self.labels, self.means * span)
+        return WorldField(self.samples * span + low, -self.vectors * span, self.labels, -self.means * span)
 
 
 @dataclass(frozen=True)
 class WorldField:
     """A denoising field in world units. samples: (S, 3) m; vectors: (S, 3) denoising directions in
-    m per unit noise; labels: (S,) mode of each sample; means: (n, 3) mode means (noise, world-scaled)."""
+    m per unit noise; labels: (S,) mode of each sample; means: (n, 3) the modes' mean denoising directions
+    (world-scaled, like ``vectors``)."""
 
     samples: np.ndarray
     vectors: np.ndarray

@@ -32,6 +32,7 @@ from server.errors import ServiceError
 from server.fleet import Fleet
 from server.recording import recover
 from server.settings import Settings
+from web.console import Console
 from web.sessions import ConsoleSessions
 
 log = logging.getLogger("hitl.server")
@@ -39,17 +40,18 @@ API_PREFIX = "/api/v1"
 DOCS_PATH = "/docs"
 REDOC_PATH = "/redoc"
 DOCS_ASSETS = "/docs/assets"  # Swagger UI's and ReDoc's files, from the fastapi-offline package
-# The operator console's path once it exists: "/" and the ready line then point to it instead of the docs.
-CONSOLE_PATH: str | None = None
+# The operator console's page: "/" and the ready line point to it (to the API docs when the console is off).
+CONSOLE_PATH = "/console/"
 DESCRIPTION = "Robots ask for help when their denoising uncertainty is high; operators take over."
 
 # What clients poll: successful GETs of these go to the access log at debug level, the rest at info.
 POLLED = re.compile(rf"^(/healthz|/readyz|/metrics|{API_PREFIX}/(robots(/\d+(/view)?)?|assistance|metrics/fleet))/?$")
 
 
-def home_path() -> str:
-    """Where ``/`` sends a browser: the console once it exists (``CONSOLE_PATH``), the API docs until then."""
-    return CONSOLE_PATH or DOCS_PATH
+def home_path(app: FastAPI | None = None) -> str:
+    """Where ``/`` sends a browser: the console (``CONSOLE_PATH``), or the API docs when it is off."""
+    settings = getattr(getattr(app, "state", None), "settings", None)
+    return CONSOLE_PATH if settings is None or settings.console else DOCS_PATH
 
 
 class RedactTokens(logging.Filter):
@@ -112,7 +114,7 @@ def base_url(app: FastAPI) -> str:
 
 def ready_line(app: FastAPI) -> str:
     base, n = base_url(app), len(app.state.fleet.robots)
-    console = f"console at {base}{CONSOLE_PATH}" if CONSOLE_PATH else "console not yet available"
+    console = f"console at {base}{CONSOLE_PATH}" if app.state.settings.console else "console off"
     return f"ready: {n} robot{'s' if n != 1 else ''}, {console}, docs at {base}{DOCS_PATH}"
 
 
@@ -189,6 +191,10 @@ def create_app(settings: Settings) -> FastAPI:
         app.state.settings, app.state.sessions, app.state.fleet = settings, sessions, fleet
         app.state.tokens = TokenCache(sessions)
         app.state.console_sessions = ConsoleSessions()
+        app.state.console = None
+        if settings.console:
+            app.state.console = Console(fleet, settings.control_hz)
+            app.state.console.start()
         fleet.start()
         log.info("fleet of %d robot(s) started; ready once its control loop has ticked", len(fleet.robots))
         announcer = asyncio.create_task(announce_ready(app))
@@ -197,6 +203,8 @@ def create_app(settings: Settings) -> FastAPI:
         finally:
             announcer.cancel()
             await asyncio.gather(announcer, return_exceptions=True)
+            if app.state.console is not None:
+                app.state.console.stop()
             fleet.stop()
             engine.dispose()
 
@@ -242,7 +250,7 @@ def _add_docs(app: FastAPI) -> None:
 
     @app.get("/", include_in_schema=False)
     async def home(request: Request) -> RedirectResponse:
-        return RedirectResponse(root(request) + home_path())
+        return RedirectResponse(root(request) + home_path(app))
 
     @app.get(DOCS_PATH, include_in_schema=False)
     async def swagger_ui(request: Request) -> HTMLResponse:

@@ -36,7 +36,7 @@ from server.commands import CommandMailbox
 from server.db import PolicyVersion
 from server.errors import ServiceError
 from server.recording import Recorder
-from server.robot import MODES, Robot, RobotView
+from server.robot import MODES, Robot, RobotView, TimelinePoint
 from server.settings import Settings
 from server.slots import PolicySlot, load_slot
 from server.workers import WORKERS, Priority, WorkerFactory, WorkerFault, wait_any
@@ -121,6 +121,8 @@ class Fleet:
         robot.seed += 1
         robot.slot.controller.reset(robot.id, robot.seed)
         robot.steps = robot.assisted_steps = robot.events = 0
+        robot.timeline.clear()  # a plot of this episode's steps
+        robot.teleop_left = None
         robot.fresh = False  # the last frame stays on view until the reset's arrives
         robot.commands.clear()
         robot.mode = "autonomous" if robot.mode != "paused" else "paused"
@@ -301,10 +303,17 @@ class Fleet:
         if step.uncertainty is not None:
             robot.u_history.append(step.uncertainty.U)
             robot.last_result = step.uncertainty
+        if step.scores:
+            robot.scores = dict(step.scores)
         if step.source == keys.SOURCE_OPERATOR:
             robot.assisted_steps += 1
             self.recorder.segment_step(robot, robot.frame, step)
         robot.mode = step.mode.value
+        controller = robot.slot.controller
+        robot.teleop_left = controller.teleop_left(robot.id) if robot.id in controller else None
+        if robot.frame is not None:
+            u = step.uncertainty.U if step.uncertainty is not None else None
+            robot.record(TimelinePoint(robot.frame.t, robot.mode, step.scores.get(controller.asking or ""), u))
         if step.asked:
             robot.events += 1
             asking = robot.slot.controller.asking
@@ -397,6 +406,7 @@ class Fleet:
                     self.recorder.open_segment(robot, operator, req.reason)
             if robot.mode == "waiting":
                 robot.slot.controller.take_over(robot.id)
+                robot.teleop_left = robot.slot.controller.teleop_left(robot.id)
                 robot.mode = "teleop"
                 robot.commands.clear()
                 if robot.segment is None:

@@ -18,6 +18,18 @@ U_HISTORY = 300
 
 
 @dataclass(frozen=True)
+class TimelinePoint:
+    """One step of a robot's recent history, as the console plots it: t (the frame's step), the mode
+    after it, the asking signal's score (None when not scored: waiting, or teleop without a command)
+    and the denoising metric's U (None when not computed)."""
+
+    t: int
+    mode: str
+    score: float | None
+    U: float | None
+
+
+@dataclass(frozen=True)
 class RobotView:
     """A robot as the API shows it, copied at the end of each tick and after each service call."""
 
@@ -37,6 +49,9 @@ class RobotView:
     events: int
     restarts: int
     fault: str | None
+    scores: dict
+    teleop_left: int | None
+    timeline: tuple
 
 
 @dataclass
@@ -58,6 +73,9 @@ class Robot:
     successes: int = 0
     u_history: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))
     last_result: UncertaintyResult | None = None
+    scores: dict = field(default_factory=dict)  # every signal's score at the last scored step
+    teleop_left: int | None = None  # operator steps left in a budgeted assistance event
+    timeline: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))  # TimelinePoint per step
     restarts: int = 0
     restart_at: float | None = None
     fault: str | None = None
@@ -75,4 +93,11 @@ class Robot:
     def publish(self) -> None:
         """A consistent copy of what the API shows, so readers never wait for a tick in progress."""
         values = {f.name: getattr(self, f.name) for f in fields(RobotView)}
-        self.view = RobotView(**values | {"u_history": tuple(self.u_history)})
+        self.view = RobotView(**values | {"u_history": tuple(self.u_history), "timeline": tuple(self.timeline)})
+
+    def record(self, point: TimelinePoint) -> None:
+        """Appends a step to the timeline; a robot not stepped (its frame's ``t`` unchanged) updates its last point."""
+        if self.timeline and self.timeline[-1].t == point.t:
+            self.timeline[-1] = point
+        else:
+            self.timeline.append(point)

@@ -74,6 +74,10 @@ class Settings(BaseSettings):
         "once, whatever its signal says (unset: only the signal asks)",
     )
     lease_seconds: float = Field(10.0, gt=0, le=3600)
+    console: bool = Field(
+        True, description="serve the operator console at /console/ (its viser server listens on an internal "
+        "127.0.0.1 port that any local process can reach: docs/console.md)"
+    )
     record_episodes: bool = False
     max_body_bytes: int = Field(64 * 1024, ge=1024)
     seed: int = 0

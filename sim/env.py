@@ -274,6 +274,15 @@ class Task(ABC):
         robot = self.env.robots[0]
         return self.sim.data.qpos[robot._ref_gripper_joint_pos_indexes["right"]].copy()
 
+    def mj_model(self):
+        """The task's compiled ``mujoco.MjModel`` (built once per task: ``hard_reset`` is off), for viewers that
+        pose it from ``joint_positions``. Read-only: copy it before changing anything."""
+        return self.sim.model._model
+
+    def joint_positions(self) -> np.ndarray:
+        """(nq,) the simulation's joint positions: with the task's model, they pose every body."""
+        return np.array(self.sim.data.qpos, dtype=np.float64)
+
     def gripper_opening(self) -> float:
         """Finger gap in metres (0.08 fully open)."""
         q = self.gripper_qpos()

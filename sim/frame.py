@@ -26,7 +26,8 @@ class RobotFrame:
     sees of the scene's goal (plain JSON values); t: steps since the reset; clock: those of them that
     count against the horizon (holds do not); horizon: the clock's limit (the task's); success / done:
     the task's outcome after this step;
-    info: the task's episode details, set once ``done``.
+    info: the task's episode details, set once ``done``; qpos: (nq,) the simulation's joint positions,
+    enough for a viewer holding the task's model to pose every body (the console's scene).
     """
 
     obs: np.ndarray
@@ -43,6 +44,7 @@ class RobotFrame:
     success: bool = False
     done: bool = False
     info: dict = field(default_factory=dict)
+    qpos: np.ndarray | None = None
 
     @property
     def gripper_command(self) -> float:
@@ -69,6 +71,7 @@ class RobotFrame:
             success=bool(result.success) if result is not None else False,
             done=done,
             info=task.episode_info() if done else {},
+            qpos=task.joint_positions(),
         )
 
 

@@ -69,8 +69,9 @@ class Service:
     def __init__(self, settings):
         self.settings = settings
         self.url = f"http://127.0.0.1:{settings.port}"
+        self.app = create_app(settings)
         self.server = uvicorn.Server(
-            uvicorn.Config(create_app(settings), host="127.0.0.1", port=settings.port, log_level="warning")
+            uvicorn.Config(self.app, host="127.0.0.1", port=settings.port, log_level="warning")
         )
         self.thread = threading.Thread(target=self.server.run, daemon=True)
 
@@ -85,6 +86,10 @@ class Service:
                 pass
             time.sleep(0.2)
         raise RuntimeError("service did not become ready")
+
+    def app_state(self):
+        """The running app's state (the services its lifespan built)."""
+        return self.app.state
 
     def __exit__(self, *exc):
         self.server.should_exit = True
@@ -134,6 +139,9 @@ class KinematicTask:
 
     def hold_action(self):
         return self.action.copy()
+
+    def joint_positions(self):
+        return None  # no simulated scene to pose
 
     def gripper_opening(self):
         return 0.08 if self.action[9] < 0 else 0.0

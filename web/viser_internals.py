@@ -1,7 +1,7 @@
-"""Every part of viser that the console relies on beyond its public API, named in one place.
+"""Every part of viser (and mjviser) that the console relies on beyond the public API, named in one place.
 
-viser is pinned exactly (``viser==1.1.1`` in pyproject.toml) because of these. When upgrading, check
-each one against the new release.
+viser and mjviser are pinned exactly (``viser==1.1.1``, ``mjviser==0.0.14`` in pyproject.toml) because
+of these. When upgrading, check each one against the new release; ``tests/web`` exercises all of them.
 
 - ``client_page()``: viser's browser client, one self-contained file shipped inside the package
   (``viser/client/build/index.html``). The page derives its WebSocket address from its own URL, so
@@ -9,15 +9,34 @@ each one against the new release.
 - ``CLIENT_QUERY_PARAMS``: query parameters the client page obeys. ``websocket`` makes it connect to
   another server and ``playbackPath`` makes it play a recording from any URL, so a crafted link
   could show an operator a fake console; the console refuses both.
+- ``SUBPROTOCOL``: the client offers ``viser-v<version>`` and the server refuses any other version.
+- ``SHARE_MESSAGES`` / ``remove_share_handlers``: the client can ask the server for a public share
+  tunnel (``ShareUrlRequest``), and viser answers it whether or not the share button is shown. The
+  console removes those handlers, and its proxy drops the messages (``message_type``).
+- ``handshake_headers`` / ``close_client``: viser's ``ClientHandle`` does not expose the WebSocket
+  handshake, which carries the signed identity the proxy adds, nor a way to close one connection.
+- ``hide_model_groups``: mjviser shows geom and site groups 0-2; robosuite puts its collision geoms in
+  group 0, and its sites are helpers (the grip site's tall cylinder, object markers), not the scene.
 """
 
 from __future__ import annotations
 
+import asyncio
 import importlib.resources
 from pathlib import Path
 
+import msgspec
+import numpy as np
+import viser
+from viser import _messages
+
 VISER_VERSION = "1.1.1"
+if viser.__version__ != VISER_VERSION:  # the pin in pyproject.toml
+    raise ImportError(f"the console needs viser {VISER_VERSION}, found {viser.__version__}: see web/viser_internals.py")
+SUBPROTOCOL = f"viser-v{VISER_VERSION}"
 CLIENT_QUERY_PARAMS = ("websocket", "playbackPath")
+SHARE_MESSAGES = ("ShareUrlRequest", "ShareUrlDisconnect")
+HIDDEN_GROUP = 3  # mjviser hides geom groups 3-5 by default
 
 
 def client_page() -> Path:
@@ -26,3 +45,63 @@ def client_page() -> Path:
     if not page.is_file():
         raise FileNotFoundError(f"viser's client page is missing from the install: {page}")
     return page
+
+
+def message_type(raw: bytes) -> str | None:
+    """The ``type`` of one client-to-server viser message (msgpack), or None if it is not one."""
+    try:
+        decoded = msgspec.msgpack.decode(raw)
+    except (msgspec.DecodeError, ValueError, TypeError):
+        return None
+    kind = decoded.get("type") if isinstance(decoded, dict) else None
+    return kind if isinstance(kind, str) else None
+
+
+def remove_share_handlers(server: viser.ViserServer) -> None:
+    """Unregisters the server's answers to share-tunnel requests: a crafted message opens no tunnel."""
+    infra = server._websock_server
+    for name in SHARE_MESSAGES:
+        cls = getattr(_messages, name)
+        if cls in infra._incoming_handlers:
+            infra.unregister_handler(cls)
+
+
+def share_handlers(server: viser.ViserServer) -> list[str]:
+    """The share messages the server still answers (tests: empty after ``remove_share_handlers``)."""
+    infra = server._websock_server
+    return [name for name in SHARE_MESSAGES if getattr(_messages, name) in infra._incoming_handlers]
+
+
+def handshake_headers(server: viser.ViserServer, client_id: int) -> dict[str, str]:
+    """The HTTP headers of a connected client's WebSocket handshake (empty if it is gone)."""
+    connection = server._websock_server._live_connections.get(client_id)
+    if connection is None or connection.request is None:
+        return {}
+    return {k.lower(): v for k, v in connection.request.headers.raw_items()}
+
+
+def close_client(server: viser.ViserServer, client_id: int, reason: str) -> None:
+    """Closes one client's connection (policy violation, 1008), from any thread."""
+    infra = server._websock_server
+    connection = infra._live_connections.get(client_id)
+    loop = infra._background_event_loop
+    if connection is not None and loop is not None:
+        asyncio.run_coroutine_threadsafe(connection.close(1008, reason[:120]), loop)
+
+
+def hide_model_groups(model, groups: tuple[int, ...] = (0,)) -> None:
+    """Moves the geoms of ``groups`` (robosuite's collision geoms: 0) and every site to a group mjviser
+    hides, in place: call it on the browser's own copy of the model."""
+    model.geom_group[np.isin(model.geom_group, groups)] = HIDDEN_GROUP
+    model.site_group[:] = HIDDEN_GROUP
+
+
+def on_handshake(server: viser.ViserServer, callback) -> None:
+    """``callback(client_id)`` right after a WebSocket handshake, before viser's own connect callbacks
+    (which wait for the client's first camera message) and before the client is sent its state."""
+    infra = server._websock_server
+
+    def handler(connection) -> None:
+        callback(connection.client_id)
+
+    infra.on_client_connect(handler)

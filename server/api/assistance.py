@@ -25,7 +25,6 @@ from server.api.ws_messages import (
 from server.assistance import AssistanceRequest
 from server.errors import ServiceError
 from server.fleet import Fleet
-from sim.spaces import TeleopCommand
 
 router = APIRouter(tags=["assistance"])
 
@@ -78,10 +77,6 @@ def release(robot_id: Id, fleet: FleetDep, who: Operator) -> RobotSummary:
     return summary(fleet.view(robot_id))
 
 
-def _command(body: TeleopCommandIn) -> TeleopCommand:
-    return TeleopCommand(tuple(body.delta_pos), tuple(body.delta_rot), body.gripper)
-
-
 @router.post(
     "/robots/{robot_id}/command",
     response_model=CommandAccepted,
@@ -102,7 +97,7 @@ async def command(robot_id: Id, body: TeleopCommandIn, fleet: FleetDep, who: Ope
     changes: send it again after the next tick. ``pending`` says how many commands the next tick
     applies. 409 for a robot that is not under teleop (autonomous, waiting, paused, ...) or that another
     operator holds; 404 only for an unknown robot."""
-    pending = fleet.command(robot_id, who.name, _command(body))
+    pending = fleet.command(robot_id, who.name, body.to_command())
     return CommandAccepted(robot_id=robot_id, pending=pending)
 
 
@@ -149,7 +144,7 @@ async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
                 await _send(websocket, body)
                 continue
             try:
-                pending = fleet.command(robot_id, principal.name, _command(body))
+                pending = fleet.command(robot_id, principal.name, body.to_command())
             except ServiceError as exc:
                 await _send(websocket, TeleopErrorMessage(error=str(exc), status=exc.status))
                 continue

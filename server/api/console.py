@@ -8,6 +8,9 @@ and log-out. Not part of the REST API (left out of the OpenAPI document).
   port of the same host.
 - A link carrying the client's ``websocket`` or ``playbackPath`` parameter is redirected to the bare
   page, so a crafted link cannot point an operator's console at another server or a fake recording.
+- The page's WebSocket (``/console``) is admitted only with a live session and a same-origin ``Origin``
+  (403 otherwise, 401 without a session), and relayed to the internal viser server with the user's
+  signed identity (``web.proxy``, ``web.identity``). Log-out and token revocation close it within seconds.
 """
 
 from __future__ import annotations
@@ -15,31 +18,41 @@ from __future__ import annotations
 import html
 from urllib.parse import parse_qs
 
-from fastapi import APIRouter, Request, status
-from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
+from fastapi import APIRouter, Request, WebSocket, status
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
+from starlette.requests import HTTPConnection
 
 from server.api.deps import lookup_principal
+from web.proxy import relay
 from web.sessions import COOKIE, COOKIE_PATH, MAX_AGE_S
-from web.viser_internals import CLIENT_QUERY_PARAMS, client_page
+from web.viser_internals import CLIENT_QUERY_PARAMS, SUBPROTOCOL, client_page
 
 PAGE = COOKIE_PATH + "/"
 LOGIN = COOKIE_PATH + "/login"
 LOGOUT = COOKIE_PATH + "/logout"
-PAGE_HEADERS = {"Cache-Control": "no-store", "X-Frame-Options": "DENY", "Referrer-Policy": "no-referrer"}
+# Referrer-Policy same-origin, not no-referrer: under no-referrer a browser sends ``Origin: null`` with the
+# log-in form's POST, which ``same_origin`` (rightly) refuses
+PAGE_HEADERS = {"Cache-Control": "no-store", "X-Frame-Options": "DENY", "Referrer-Policy": "same-origin"}
 
 router = APIRouter(include_in_schema=False)
 
 
-def same_origin(request: Request) -> bool:
-    """True without an ``Origin`` header (not a browser) or with this server's own origin."""
-    origin = request.headers.get("origin")
-    return origin is None or origin == f"{request.url.scheme}://{request.headers.get('host', '')}"
+def same_origin(conn: HTTPConnection) -> bool:
+    """True without an ``Origin`` header (not a browser) or with this server's own origin (a WebSocket's
+    ``ws``/``wss`` scheme is its page's ``http``/``https``)."""
+    origin = conn.headers.get("origin")
+    scheme = {"ws": "http", "wss": "https"}.get(conn.url.scheme, conn.url.scheme)
+    return origin is None or origin == f"{scheme}://{conn.headers.get('host', '')}"
 
 
-async def console_principal(request: Request):
+async def session_principal(app, sid: str | None):
+    """The principal behind a console session id, or None (no session, logged out, token revoked)."""
+    return await lookup_principal(app, app.state.console_sessions.token(sid))
+
+
+async def console_principal(conn: HTTPConnection):
     """The principal of the request's console session, or None."""
-    sid = request.cookies.get(COOKIE)
-    return await lookup_principal(request.app, request.app.state.console_sessions.token(sid))
+    return await session_principal(conn.app, conn.cookies.get(COOKIE))
 
 
 def _login_page(message: str = "", status_code: int = 200) -> HTMLResponse:
@@ -108,3 +121,32 @@ async def logout(request: Request) -> Response:
     response = RedirectResponse(LOGIN, status.HTTP_303_SEE_OTHER)
     response.delete_cookie(COOKIE, path=COOKIE_PATH, httponly=True, samesite="strict")
     return response
+
+
+@router.websocket(COOKIE_PATH)
+async def console_socket(websocket: WebSocket) -> None:
+    """The viser client's socket: 403 for a foreign ``Origin`` (checked first: a page on another port of
+    this host gets the cookie too), 401 without a live session, 400 without viser's subprotocol; else
+    relayed to the internal viser server until either side closes or the session ends."""
+    console = getattr(websocket.app.state, "console", None)
+    if not same_origin(websocket):
+        await websocket.send_denial_response(JSONResponse({"detail": "foreign origin"}, status_code=403))
+        return
+    sid = websocket.cookies.get(COOKIE)
+    principal = await session_principal(websocket.app, sid)
+    if principal is None:
+        await websocket.send_denial_response(JSONResponse({"detail": "log in at /console/login"}, status_code=401))
+        return
+    if SUBPROTOCOL not in websocket.scope.get("subprotocols", []):
+        await websocket.send_denial_response(
+            JSONResponse({"detail": f"the console speaks {SUBPROTOCOL}: reload the page"}, status_code=400)
+        )
+        return
+    if console is None:
+        await websocket.send_denial_response(JSONResponse({"detail": "the console is off"}, status_code=503))
+        return
+
+    async def alive() -> bool:
+        return await session_principal(websocket.app, sid) is not None
+
+    await relay(websocket, console.upstream_url, console.sign(principal.name, principal.role), alive)

@@ -8,6 +8,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
+from sim.spaces import TeleopCommand
+
 MAX_DELTA_POS = 0.1  # m per command; larger is rejected (the robot clamps to 3 cm per step anyway)
 MAX_DELTA_ROT = 0.5  # rad per command
 # Id columns are INTEGER: 64-bit in SQLite but 32-bit in PostgreSQL; the API takes what both can store.
@@ -93,6 +95,9 @@ class TeleopCommandIn(BaseModel):
         if isinstance(v, float) and not math.isfinite(v):
             raise ValueError("gripper is NaN or infinite")
         return v
+
+    def to_command(self) -> TeleopCommand:
+        return TeleopCommand(tuple(self.delta_pos), tuple(self.delta_rot), self.gripper)
 
 
 class CommandAccepted(BaseModel):

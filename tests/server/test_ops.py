@@ -174,7 +174,7 @@ class _Assets(HTMLParser):
 # -- tests ----------------------------------------------------------------------------------------------------
 def test_the_ready_line_comes_when_the_service_is_ready(service):
     line = wait_for(lambda: re.search(r"^.*ready: .*$", _log(service), re.M), timeout=10).group(0)
-    assert f"ready: 1 robot, console not yet available, docs at {service.url}/docs" in line, line
+    assert f"ready: 1 robot, console at {service.url}/console/, docs at {service.url}/docs" in line, line
     text = _log(service)
     assert text.count("ready: 1 robot") == 1
     # after the fleet started and after uvicorn listens (the first tick of an in-process robot comes sooner)
@@ -184,7 +184,7 @@ def test_the_ready_line_comes_when_the_service_is_ready(service):
 
 def test_ready_is_announced_when_the_fleet_has_ticked_and_the_server_listens(caplog):
     app = FastAPI()
-    app.state.settings = SimpleNamespace(host="0.0.0.0", port=8123)
+    app.state.settings = SimpleNamespace(host="0.0.0.0", port=8123, console=False)
     app.state.fleet = SimpleNamespace(ticks=0, robots={0: None, 1: None})
     app.state.server = SimpleNamespace(started=False, servers=[])
 
@@ -201,12 +201,12 @@ def test_ready_is_announced_when_the_fleet_has_ticked_and_the_server_listens(cap
     with caplog.at_level(logging.INFO, logger="hitl.server"):
         assert asyncio.run(scenario())
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("ready:")]
-    assert lines == ["ready: 2 robots, console not yet available, docs at http://127.0.0.1:8123/docs"]
+    assert lines == ["ready: 2 robots, console off, docs at http://127.0.0.1:8123/docs"]
 
 
-def test_docs_are_served_offline_and_the_root_points_to_them(service):
+def test_docs_are_served_offline_and_the_root_points_to_the_console(service):
     home = httpx.get(service.url + "/", follow_redirects=False)
-    assert home.is_redirect and home.headers["location"] == "/docs"
+    assert home.is_redirect and home.headers["location"] == "/console/"
     for page, needed in (("/docs", "swagger-ui-bundle.js"), ("/redoc", "redoc.standalone.js")):
         html = httpx.get(service.url + page)
         assert html.status_code == 200 and "text/html" in html.headers["content-type"]

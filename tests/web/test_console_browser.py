@@ -1,0 +1,64 @@
+"""The operator's flow in a real browser against a real ``hitl serve``: log in, see the robot in the
+queue, claim it, jog it, toggle the gripper with its hotkey, hand it back; and a viewer who watches
+read-only. Every effect is checked through the REST API, not through the page."""
+
+import time
+
+from tests.helpers import wait_for
+from tests.web.conftest import log_in
+
+
+def _robot(served):
+    return served.api("/robots/0")
+
+
+def _request(served):
+    return next((r for r in served.api("/assistance") if r["robot_id"] == 0), None)
+
+
+def test_claim_jog_gripper_and_hand_back_from_the_console(served, browser):
+    wait_for(lambda: _request(served) is not None, timeout=120)  # lift-hammer's policy asks at once
+    page = log_in(browser, served, "operator")
+    page.get_by_role("tab", name="Fleet").click()
+    queue_claim = page.get_by_role("button", name="Claim robot 0")
+    queue_claim.wait_for()  # the robot is in the queue
+    queue_claim.click()
+    wait_for(lambda: _robot(served)["mode"] == "teleop", timeout=60)
+    assert _request(served)["holder"] == "operator-browser"  # attributed to the logged-in user
+
+    page.get_by_role("tab", name="Robot").click()
+    up = page.get_by_role("button", name="+Z (U)")
+    wait_for(lambda: up.is_enabled(), timeout=90)
+    z0 = _robot(served)["pose"]["position"][2]
+    up.hover()
+    page.mouse.down()
+    time.sleep(2.0)  # repeats at the control rate while held
+    page.mouse.up()
+    wait_for(lambda: _robot(served)["pose"]["position"][2] > z0 + 0.01, timeout=30)
+
+    gap0 = _robot(served)["gripper"]
+    page.get_by_text("Logged in as").click()  # focus off any input: hotkeys are for the page
+    page.keyboard.press("g")
+    wait_for(lambda: _robot(served)["gripper"] < gap0 - 0.01, timeout=30)  # it closes
+
+    page.get_by_role("button", name="Hand back (R)").click()
+    wait_for(lambda: _robot(served)["mode"] != "teleop", timeout=30)
+    segments = served.api("/segments")
+    assert any(s["robot_id"] == 0 and s["operator"] == "operator-browser" for s in segments), segments
+    page.close()
+
+
+def test_a_viewer_watches_read_only(served, browser):
+    wait_for(lambda: _request(served) is not None and _request(served)["holder"] is None, timeout=120)
+    page = log_in(browser, served, "viewer")
+    page.get_by_role("tab", name="Fleet").click()
+    claim = page.get_by_role("button", name="Claim robot 0")
+    claim.wait_for()
+    assert claim.is_disabled()
+    page.get_by_role("tab", name="Robot").click()
+    page.get_by_text("Logged in as").click()
+    page.keyboard.press("c")  # the claim hotkey: refused by the service's role check
+    page.get_by_text("needs the operator role").first.wait_for()
+    assert _request(served)["holder"] is None and _robot(served)["mode"] == "waiting"
+    assert page.get_by_role("button", name="+X (I)").is_disabled()
+    page.close()

@@ -1,0 +1,60 @@
+"""What a console user may do, through the fleet's own service methods with the API's checks.
+
+Every console input comes here: the same role rule as the REST dependencies (claiming, commanding and
+handing back need the operator role), the same body model as ``POST /robots/{id}/command``
+(``TeleopCommandIn``: finite values, per-step limits, gripper range), then the same ``Fleet`` method the
+route calls (lease check, composition limits, 429). Refusals are ``ServiceError`` with the status the
+API would answer; the console shows their message.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from pydantic import ValidationError
+
+from server.api.schemas import TeleopCommandIn
+from server.errors import ServiceError
+from server.fleet import Fleet
+from web.identity import Identity
+
+
+class ConsoleActions:
+    def __init__(self, fleet: Fleet, identity: Identity) -> None:
+        self.fleet, self.identity = fleet, identity
+
+    @property
+    def can_operate(self) -> bool:
+        return self.identity.has("operator")
+
+    def _need_operator(self, what: str) -> None:
+        if not self.can_operate:
+            raise ServiceError(403, f"{what} needs the operator role; you are logged in as {self.identity.role}")
+
+    def claim(self, robot_id: int):
+        self._need_operator("claiming a robot")
+        return self.fleet.claim(robot_id, self.identity.name)
+
+    def heartbeat(self, robot_id: int):
+        self._need_operator("holding a robot")
+        return self.fleet.heartbeat(robot_id, self.identity.name)
+
+    def release(self, robot_id: int) -> None:
+        self._need_operator("handing a robot back")
+        self.fleet.release(robot_id, self.identity.name)
+
+    def command(self, robot_id: int, delta_pos: Sequence[float], delta_rot: Sequence[float], gripper: float) -> int:
+        """One teleop command; returns how many commands the next tick applies."""
+        self._need_operator("commanding a robot")
+        try:
+            body = TeleopCommandIn(
+                delta_pos=[float(v) for v in delta_pos], delta_rot=[float(v) for v in delta_rot], gripper=gripper
+            )
+        except ValidationError as exc:
+            raise ServiceError(422, "; ".join(e["msg"] for e in exc.errors())) from exc
+        return self.fleet.command(robot_id, self.identity.name, body.to_command())
+
+    def holds(self, robot_id: int) -> bool:
+        """This user holds the robot's lease."""
+        req = self.fleet.queue.get(robot_id)
+        return req is not None and req.holder == self.identity.name

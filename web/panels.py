@@ -1,0 +1,184 @@
+"""The console's side panel, as text and plot data built from one tick's ``FleetSnapshot``.
+
+Pure functions (no viser): the fleet overview, the queue rows, a robot's numbers and goal, and its
+U timeline for uPlot. ``web.console`` puts them on screen and sends only what changed.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from policy.signals.base import SignalError
+from server.assistance import AssistanceRequest
+from server.robot import RobotView
+from sim.tasks.open_drawer import DRAWER_NAMES
+
+MODE_BADGES = {
+    "autonomous": "autonomous",
+    "waiting": "**⚠ waiting for help**",
+    "teleop": "**✋ teleop**",
+    "paused": "paused",
+    "done": "episode done",
+    "faulted": "**✖ faulted**",
+}
+KEY_MAP = (
+    ("I / K", "+x / −x (away from / towards the robot base)"),
+    ("J / L", "+y / −y"),
+    ("U / O", "+z / −z"),
+    ("N / M", "yaw + / −"),
+    ("G", "gripper open ↔ close"),
+    ("C", "claim the robot on view"),
+    ("R", "hand back"),
+)
+KEY_NOTE = "W/A/S/D/Q/E and the arrow keys move the camera."
+
+
+@dataclass(frozen=True)
+class FleetSnapshot:
+    """One tick's view of the fleet, shared by every browser: robots by id, the queue as the service
+    sorts it, and when (monotonic seconds)."""
+
+    robots: dict[int, RobotView]
+    queue: tuple[AssistanceRequest, ...]
+    now: float = field(default_factory=time.monotonic)
+
+    def request(self, robot_id: int) -> AssistanceRequest | None:
+        return next((r for r in self.queue if r.robot_id == robot_id), None)
+
+
+def asking_threshold(view: RobotView) -> tuple[str, float | None]:
+    """The asking signal's name and threshold (None when it is not calibrated)."""
+    name = view.slot.asking
+    try:
+        return name, float(view.slot.controller.signals[name].threshold)
+    except (KeyError, SignalError):
+        return name, None
+
+
+def _num(x: float | None, digits: int = 3) -> str:
+    if x is None or not math.isfinite(x):
+        return "–"
+    return f"{x:.{digits}g}"
+
+
+def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
+    """Every robot: task, mode, the asking signal's score against its threshold, U, outcomes, policy."""
+    lines = [
+        "| Robot | Task | Mode | Score / threshold | U / threshold | Successes | Assists | Policy |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for rid, v in sorted(snapshot.robots.items()):
+        name, threshold = asking_threshold(v)
+        score = v.scores.get(name)
+        flag = " ⚠" if score is not None and threshold is not None and score > threshold else ""
+        u = v.u_history[-1] if v.u_history else None
+        req = snapshot.request(rid)
+        mode = MODE_BADGES.get(v.mode, v.mode)
+        if req is not None and req.holder:
+            mode += f" ({'you' if req.holder == me else req.holder})"
+        lines.append(
+            f"| {rid} | {v.task} | {mode} | {_num(score)} / {_num(threshold)}{flag} | {_num(u)} / {_num(v.slot.threshold)} "
+            f"| {v.successes} / {v.episodes_done} | {v.events} ({v.assisted_steps} steps) | v{v.slot.version} |"
+        )
+    return "\n".join(lines)
+
+
+def queue_row(req: AssistanceRequest, view: RobotView | None, now: float, me: str) -> str:
+    task = view.task if view is not None else "?"
+    held = f" · held by **{'you' if req.holder == me else req.holder}**" if req.holder else ""
+    return f"**Robot {req.robot_id}** · {task} · waiting {now - req.created:.0f} s{held}  \n{req.reason}"
+
+
+def goal_text(description: str, goal: dict) -> str:
+    """The task's goal as the operator knows it (what the robot's camera may not show)."""
+    if "intended" in goal and isinstance(goal["intended"], int) and 0 <= goal["intended"] < len(DRAWER_NAMES):
+        return f"Open the **{DRAWER_NAMES[goal['intended']]}** drawer (the robot does not know which)."
+    if "red_visible" in goal:
+        seen = "" if goal["red_visible"] else " The red cup is hidden from the robot's camera."
+        return f"{description}.{seen}"
+    if "grasp_yaw" in goal:
+        return f"{description}; grasp across its bar (yaw {math.degrees(float(goal['grasp_yaw'])):.0f}°)."
+    return description
+
+
+def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, me: str, description: str) -> str:
+    """Mode and lease, which signal asked and why, n, D, Var_g and U against the threshold, the goal."""
+    frame = view.frame
+    name, threshold = asking_threshold(view)
+    score = view.scores.get(name)
+    head = f"### Robot {view.id} · {view.task} · {MODE_BADGES.get(view.mode, view.mode)}"
+    lines = [head]
+    if req is not None:
+        lease = ""
+        if req.holder:
+            left = max(0.0, (req.lease_until or now) - now)
+            lease = f" · held by **{'you' if req.holder == me else req.holder}** (lease {left:.0f} s)"
+        lines.append(f"**Asked:** {req.reason}{lease}")
+    if view.mode == "teleop" and view.teleop_left is not None:
+        lines.append(f"**Budget:** {view.teleop_left} operator step{'s' if view.teleop_left != 1 else ''} left")
+    if view.fault:
+        lines.append(f"**Fault:** {view.fault}")
+    r = view.last_result
+    rows = ["| | value | threshold |", "|---|---|---|"]
+    rows.append(f"| **{name}** (asks) | {_num(score)} | {_num(threshold)} |")
+    if r is not None:
+        over = " ⚠" if view.slot.threshold and view.slot.threshold < r.U else ""
+        rows += [
+            f"| U = D + α·Var_g | {_num(r.U)}{over} | {_num(view.slot.threshold)} |",
+            f"| D (mode divergence) | {_num(r.D)} | |",
+            f"| Var_g | {_num(r.var_g)} | |",
+            f"| n (modes) | {r.n} | |",
+        ]
+    lines.append("\n".join(rows))
+    if r is None:
+        lines.append("_No denoising field: add `denoising` to the service's `shadow_signals` to see it._")
+    if frame is not None:
+        lines.append(f"**Goal:** {goal_text(description, frame.goal)}")
+        lines.append(
+            f"Episode step {frame.clock} of {frame.horizon} (seed {view.seed}) · gripper {frame.gripper * 100:.1f} mm open"
+        )
+    return "\n\n".join(lines)
+
+
+def key_map_markdown() -> str:
+    rows = "\n".join(f"| {k} | {v} |" for k, v in KEY_MAP)
+    return f"| Key | Action |\n|---|---|\n{rows}\n\n_{KEY_NOTE}_"
+
+
+def timeline_data(view: RobotView) -> tuple[np.ndarray, ...]:
+    """uPlot data: step, the asking signal's score / its threshold, U / its threshold, the threshold
+    (1), help requested (a marker at 1), control changed hands (a marker at 1). NaN is a gap."""
+    points = view.timeline
+    _, threshold = asking_threshold(view)
+    t = np.array([p.t for p in points], dtype=np.float64)
+    score = np.array([np.nan if p.score is None or not threshold else p.score / threshold for p in points])
+    u_thr = view.slot.threshold
+    u = np.array([np.nan if p.U is None or not u_thr else p.U / u_thr for p in points])
+    asked = np.full(len(points), np.nan)
+    handed = np.full(len(points), np.nan)
+    for i in range(1, len(points)):
+        before, after = points[i - 1].mode, points[i].mode
+        if after == "waiting" and before != "waiting":
+            asked[i] = 1.0
+        if (after == "teleop") != (before == "teleop") and "paused" not in (before, after):
+            handed[i] = 1.0
+    return t, score, u, np.ones(len(points)), asked, handed
+
+
+TIMELINE_SERIES = (
+    {"label": "step"},
+    {"label": "score ÷ threshold", "stroke": "#0072B2", "width": 2},
+    {"label": "U ÷ threshold", "stroke": "#888888", "width": 1},
+    {"label": "threshold", "stroke": "#D55E00", "width": 1, "dash": [6, 4]},
+    {"label": "asked", "stroke": "#D55E00", "width": 0, "points": {"show": True, "size": 9, "fill": "#D55E00"}},
+    {
+        "label": "control changed",
+        "stroke": "#009E73",
+        "width": 0,
+        "points": {"show": True, "size": 9, "fill": "#009E73"},
+    },
+)
