@@ -9,7 +9,9 @@ Subcommands:
   rollout   run a policy autonomously and report success and uncertainty
   calibrate set the uncertainty threshold from held-out validation episodes
   plot      write figures to docs/
-  bench     print speed measurements as JSON
+  bench     print speed measurements as JSON (bench console: the operator console's cost)
+  serve     run the fleet service with the operator console at /console/
+  docs      generate documentation assets (docs screenshots: the console's pictures)
 """
 
 from __future__ import annotations
@@ -154,12 +156,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="write the markdown table here (e.g. docs/experts.md)")
     p.set_defaults(func=_cmd_experts)
 
-    from hitl import bench_commands, policy_commands, server_commands, signal_commands
+    from hitl import bench_commands, console_commands, policy_commands, server_commands, signal_commands
 
     bench = policy_commands.register(sub)
     signal_commands.register(sub, bench)
     server_commands.register(sub, bench)
     bench_commands.register(bench)
+    console_commands.register(sub, bench)
     return parser
 
 

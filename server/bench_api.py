@@ -39,9 +39,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import logging
 import multiprocessing as mp
-import socket
 import tempfile
 import threading
 import time
@@ -50,6 +48,8 @@ from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
+
+from server.local_service import LocalService
 
 API = "/api/v1"
 POLL_KINDS = ("robots", "robot", "view", "queue", "metrics")
@@ -275,74 +275,6 @@ def _client_process(p: dict, go, out) -> None:
 
 
 # -- the server (this process) ---------------------------------------------------------------------------
-class _LogCount(logging.FileHandler):
-    """The server's log, to a file; counts warnings and errors and keeps the first few."""
-
-    def __init__(self, path: Path) -> None:
-        super().__init__(path)
-        self.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-        self.warnings, self.first = 0, []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        super().emit(record)
-        if record.levelno >= logging.WARNING:
-            self.warnings += 1
-            if len(self.first) < 5:
-                self.first.append(f"{record.levelname} {record.name}: {record.getMessage()}"[:300])
-
-
-class _Service:
-    """``create_app(settings)`` under uvicorn, in a thread, on a socket bound to a free port."""
-
-    def __init__(self, settings, log_path: Path) -> None:
-        import uvicorn
-
-        from server.app import RedactTokens, create_app
-
-        # IPPROTO_TCP explicitly: asyncio sets TCP_NODELAY only on sockets whose ``proto`` says TCP (as
-        # uvicorn's own, from getaddrinfo); with proto 0 every response would wait out Nagle + delayed ACK
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
-        self.sock.bind(("127.0.0.1", 0))
-        self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}"
-        self.app = create_app(settings)
-        self.log = _LogCount(log_path)
-        self._redact = RedactTokens()
-        self._loggers = [logging.getLogger(n) for n in ("uvicorn", "hitl")]
-        self._saved = [(lg, lg.propagate, lg.level) for lg in self._loggers]
-        for lg in self._loggers:
-            lg.addHandler(self.log)
-            lg.propagate = False
-            lg.setLevel(logging.INFO)
-        logging.getLogger("uvicorn.access").addFilter(self._redact)
-        config = uvicorn.Config(self.app, log_config=None, log_level="info", access_log=True)
-        self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
-
-    def __enter__(self):
-        import httpx
-
-        self.thread.start()
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline and self.thread.is_alive():
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(self.url + "/readyz").status_code == 200:
-                    return self
-            time.sleep(0.2)
-        self.__exit__()
-        tail = Path(self.log.baseFilename).read_text()[-2000:]
-        raise RuntimeError(f"the service did not become ready; the end of its log:\n{tail}")
-
-    def __exit__(self, *exc) -> None:
-        self.server.should_exit = True
-        self.thread.join(timeout=60)
-        self.sock.close()
-        logging.getLogger("uvicorn.access").removeFilter(self._redact)
-        for lg, propagate, level in self._saved:
-            lg.removeHandler(self.log)
-            lg.propagate, lg.level = propagate, level
-        self.log.close()
-
-
 def _cpu_ticks(pids: dict[str, int]) -> dict[str, int]:
     """CPU clock ticks: the machine's busy time, and each process's (Linux ``/proc``; empty elsewhere)."""
     out = {}
@@ -527,7 +459,7 @@ def bench_api(
             bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s",
         )
         try:
-            with _Service(settings, Path(tmp) / "server.log") as svc:
+            with LocalService(settings, Path(tmp) / "server.log") as svc:
                 _wait_stepping(svc.app.state.fleet)
                 time.sleep(2.0)  # warm-up
                 idle = _measure(_Window(svc.app.state.fleet), idle_seconds, bar)

@@ -75,8 +75,9 @@ class Settings(BaseSettings):
     )
     lease_seconds: float = Field(10.0, gt=0, le=3600)
     console: bool = Field(
-        True, description="serve the operator console at /console/ (its viser server listens on an internal "
-        "127.0.0.1 port that any local process can reach: docs/console.md)"
+        True,
+        description="serve the operator console at /console/ (its viser server listens on an internal "
+        "127.0.0.1 port that any local process can reach: docs/console.md)",
     )
     record_episodes: bool = False
     max_body_bytes: int = Field(64 * 1024, ge=1024)

@@ -7,6 +7,7 @@ without the lease watches read-only: the inputs are disabled, and the service wo
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -47,6 +48,7 @@ JOGS = (  # label, hotkey, translation axis or None, rotation axis or None, sign
 HEARTBEAT_S = 1.0
 GIZMO_TOLERANCE = (0.002, 0.02)  # m, rad: a dragged target counts as reached
 NOTIFY_S = 8.0
+FOCUS_OFFSET = np.array([0.32, 0.22, 0.16])  # m, from the end effector: the probe ball fills the middle of the view
 
 
 class OperatorPanel:
@@ -93,6 +95,7 @@ class OperatorPanel:
         tabs = gui.add_tab_group()
         with tabs.add_tab("Robot", viser.Icon.ROBOT):
             self.robot_select = gui.add_dropdown("Robot", options=("–",), initial_value="–")
+            self.focus_button = gui.add_button("Look at the gripper (F)", icon=viser.Icon.FOCUS_CENTERED)
             self.status = gui.add_markdown("Waiting for the fleet…")
             self.plot = gui.add_uplot(
                 data=tuple(np.zeros(0) for _ in TIMELINE_SERIES),
@@ -131,6 +134,8 @@ class OperatorPanel:
         for label, key, pos_axis, rot_axis, sign in JOGS:
             command = gui.add_command(f"Jog {label}", hotkey=key)
             command.on_trigger(self._jog_callback(pos_axis, rot_axis, sign))
+        self.focus_button.on_click(lambda _: self._focus())
+        gui.add_command("Look at the gripper", hotkey="F").on_trigger(lambda _: self._focus())
         gui.add_command("Toggle gripper", hotkey="G").on_trigger(lambda _: self._toggle_gripper())
         gui.add_command("Claim the robot on view", hotkey="C").on_trigger(lambda _: self._claim(self.robot_id))
         gui.add_command("Hand back", hotkey="R").on_trigger(lambda _: self._release(self.robot_id))
@@ -153,6 +158,14 @@ class OperatorPanel:
             if robot_id is not None and robot_id != self.robot_id:
                 self.robot_id = robot_id
                 self._drag, self._gripper = None, None
+
+    def _focus(self) -> None:
+        """Moves this browser's camera close to the end effector, where the field is readable."""
+        view = self.fleet.view(self.robot_id) if self.robot_id is not None else None
+        if view is not None and view.frame is not None:
+            ee = np.asarray(view.frame.pos, float)
+            self.client.camera.look_at = ee
+            self.client.camera.position = ee + FOCUS_OFFSET
 
     def _claim(self, robot_id: int | None) -> None:
         if robot_id is None:
@@ -284,10 +297,8 @@ class OperatorPanel:
         self._last_heartbeat = snap.now
         for req in snap.queue:
             if req.holder == self.identity.name:
-                try:
+                with contextlib.suppress(ServiceError):  # the lease ran out or went back: a notification says so
                     self.actions.heartbeat(req.robot_id)
-                except ServiceError:
-                    pass  # the lease ran out or went back: the notification says so
 
     def _queue(self, snap: FleetSnapshot) -> None:
         me = self.identity.name

@@ -31,6 +31,7 @@ KEY_MAP = (
     ("U / O", "+z / −z"),
     ("N / M", "yaw + / −"),
     ("G", "gripper open ↔ close"),
+    ("F", "look at the gripper"),
     ("C", "claim the robot on view"),
     ("R", "hand back"),
 )
@@ -81,7 +82,8 @@ def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
         if req is not None and req.holder:
             mode += f" ({'you' if req.holder == me else req.holder})"
         lines.append(
-            f"| {rid} | {v.task} | {mode} | {_num(score)} / {_num(threshold)}{flag} | {_num(u)} / {_num(v.slot.threshold)} "
+            f"| {rid} | {v.task} | {mode} | {_num(score)} / {_num(threshold)}{flag} "
+            f"| {_num(u)} / {_num(v.slot.threshold)} "
             f"| {v.successes} / {v.episodes_done} | {v.events} ({v.assisted_steps} steps) | v{v.slot.version} |"
         )
     return "\n".join(lines)
@@ -139,7 +141,8 @@ def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, m
     if frame is not None:
         lines.append(f"**Goal:** {goal_text(description, frame.goal)}")
         lines.append(
-            f"Episode step {frame.clock} of {frame.horizon} (seed {view.seed}) · gripper {frame.gripper * 100:.1f} mm open"
+            f"Episode step {frame.clock} of {frame.horizon} (seed {view.seed}) · "
+            f"gripper {frame.gripper * 1000:.0f} mm open"
         )
     return "\n\n".join(lines)
 

@@ -55,7 +55,9 @@ def served(tmp_path_factory):
     for role in ("operator", "viewer"):
         out = subprocess.run(
             [*HITL, "token", "create", "--config", str(config), "--role", role, "--name", f"{role}-browser"],
-            check=True, capture_output=True, text=True,
+            check=True,
+            capture_output=True,
+            text=True,
         )
         tokens[role] = out.stdout.strip().split()[-1]
     port = free_port()

@@ -1,0 +1,125 @@
+"""The console's pure parts: the signed identity, viser message types, the field's arrows in world
+units, the U timeline's events, and the panel text."""
+
+import time
+
+import msgspec
+import numpy as np
+
+from policy.normalizer import MinMaxNormalizer
+from policy.uncertainty import UncertaintyResult
+from server.robot import TimelinePoint
+from web.identity import Identity, IdentitySigner
+from web.panels import goal_text, key_map_markdown, timeline_data
+from web.scene import FIELD_LONGEST_M, MODE_COLORS, field_arrows, pose_delta, probe_radii
+from web.viser_internals import message_type
+
+
+def test_a_signed_identity_verifies_and_a_tampered_or_expired_one_does_not():
+    signer = IdentitySigner()
+    value = signer.sign(Identity("alice", "operator"))
+    assert signer.verify(value) == Identity("alice", "operator")
+    payload, mac = value.split(".")
+    forged = IdentitySigner().sign(Identity("alice", "admin")).split(".")[0] + "." + mac
+    assert signer.verify(forged) is None  # another payload under alice's signature
+    assert IdentitySigner().verify(value) is None  # another key
+    assert signer.verify(None) is None and signer.verify("") is None and signer.verify("a.b.c") is None
+    short = IdentitySigner(ttl_s=0.01)
+    old = short.sign(Identity("bob", "viewer"))
+    time.sleep(0.05)
+    assert short.verify(old) is None
+
+
+def test_message_types_are_read_from_msgpack_and_garbage_has_none():
+    assert message_type(msgspec.msgpack.encode({"type": "ShareUrlRequest"})) == "ShareUrlRequest"
+    assert message_type(msgspec.msgpack.encode([1, 2])) is None
+    assert message_type(b"\xff\x00garbage") is None
+
+
+def _normalizer(low, high):
+    n = MinMaxNormalizer(10)
+    n.set_bounds(np.asarray(low, np.float64), np.asarray(high, np.float64))
+    return n
+
+
+def test_field_arrows_are_in_world_units_around_the_probe_centre():
+    low = [0.0, -1.0, 0.5] + [-1.0] * 7
+    high = [1.0, 1.0, 1.5] + [1.0] * 7
+    norm = _normalizer(low, high)
+    samples = np.array([[0.5, 0.5, 0.5], [0.55, 0.5, 0.5], [0.5, 0.45, 0.5]])  # normalized
+    vectors = np.array([[0.1, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, -0.1]])  # ε: arrows point along -ε
+    result = UncertaintyResult(
+        samples=samples,
+        vectors=vectors,
+        labels=np.array([0, 1, 1]),
+        means=np.array([[0.1, 0, 0], [0, 0.1, 0]]),
+        weights=np.array([0.4, 0.6]),
+        n=2,
+        D=1.0,
+        var_g=0.1,
+        U=1.1,
+    )
+    centre = np.array([0.5, 0.0, 1.0])  # the world point of the normalized samples[0]
+    arrows = field_arrows(result, norm, centre)
+    np.testing.assert_allclose(arrows.field[:, 0], [[0, 0, 0], [0.05, 0, 0], [0, -0.1, 0]], atol=1e-6)
+    direction = arrows.field[:, 1] - arrows.field[:, 0]
+    lengths = np.linalg.norm(direction, axis=1)
+    assert np.isclose(lengths.max(), FIELD_LONGEST_M, atol=1e-6)  # the longest, at the set length
+    # -ε scaled per axis by the bounds' span (1, 2, 1 m): (-0.1, 0, 0), (0, -0.4, 0), (0, 0, 0.1)
+    np.testing.assert_allclose(direction / lengths.max() * 0.4, [[-0.1, 0, 0], [0, -0.4, 0], [0, 0, 0.1]], atol=1e-6)
+    np.testing.assert_array_equal(arrows.colors, MODE_COLORS[[0, 1, 1]])
+    assert arrows.modes.shape == (2, 2, 3)  # one bold arrow per mode, from its samples' centroid
+    np.testing.assert_allclose(arrows.modes[1, 0], arrows.field[1:, 0].mean(axis=0), atol=1e-6)
+    assert np.dot(arrows.modes[0, 1] - arrows.modes[0, 0], [-1, 0, 0]) > 0  # a mode mean points along -ε too
+    np.testing.assert_allclose(probe_radii(norm, 0.05), [0.05, 0.1, 0.05])
+
+
+def test_pose_delta_is_the_world_frame_step_to_a_target():
+    from scipy.spatial.transform import Rotation
+
+    class Frame:
+        pos = np.array([0.1, 0.2, 0.3])
+        quat = Rotation.from_euler("z", 10, degrees=True).as_quat()
+
+    target = Rotation.from_euler("z", 25, degrees=True).as_quat()  # xyzw
+    delta_pos, delta_rot = pose_delta(np.array([0.12, 0.2, 0.29]), np.roll(target, 1), Frame)
+    np.testing.assert_allclose(delta_pos, [0.02, 0.0, -0.01], atol=1e-12)
+    np.testing.assert_allclose(delta_rot, [0, 0, np.radians(15)], atol=1e-9)
+
+
+class _Slot:
+    threshold = 2.0
+    asking = "spread"
+
+    class controller:  # noqa: N801 - the attribute the panel reads
+        class _Signal:
+            threshold = 0.5
+
+        signals = {"spread": _Signal()}
+
+
+class _View:
+    slot = _Slot()
+
+    def __init__(self, modes):
+        self.timeline = tuple(TimelinePoint(t, m, 0.25 * (t + 1), 1.0 if t % 2 else None) for t, m in enumerate(modes))
+
+
+def test_the_timeline_marks_requests_and_changes_of_hands():
+    modes = ["autonomous", "autonomous", "waiting", "waiting", "teleop", "teleop", "autonomous"]
+    t, score, u, threshold, asked, handed = timeline_data(_View(modes))
+    np.testing.assert_array_equal(t, np.arange(7))
+    np.testing.assert_allclose(score, 0.25 * (t + 1) / 0.5)  # relative to the asking signal's threshold
+    assert np.isnan(u[0]) and u[1] == 0.5  # U / 2.0; None is a gap
+    np.testing.assert_array_equal(threshold, np.ones(7))
+    assert list(np.flatnonzero(~np.isnan(asked))) == [2]
+    assert list(np.flatnonzero(~np.isnan(handed))) == [4, 6]
+
+
+def test_the_goal_and_the_key_map_read_as_an_operator_needs_them():
+    assert "**left** drawer" in goal_text("Open the intended one of three drawers", {"intended": 2})
+    assert "hidden" in goal_text("Put the green cup in the red one", {"red_visible": False})
+    keys = key_map_markdown()
+    assert "W/A/S/D/Q/E" in keys  # left to the camera, and said so
+    for key in ("| I / K |", "| J / L |", "| U / O |", "| N / M |", "| G |"):
+        assert key in keys
