@@ -313,7 +313,7 @@ class Fleet:
         robot.teleop_left = controller.teleop_left(robot.id) if robot.id in controller else None
         if robot.frame is not None:
             u = step.uncertainty.U if step.uncertainty is not None else None
-            robot.record(TimelinePoint(robot.frame.t, robot.mode, step.scores.get(controller.asking or ""), u))
+            robot.record(TimelinePoint(robot.frame.clock, robot.mode, step.scores.get(controller.asking or ""), u))
         if step.asked:
             robot.events += 1
             asking = robot.slot.controller.asking

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 from policy.uncertainty import UncertaintyResult
 from server.commands import CommandMailbox
@@ -19,14 +19,18 @@ U_HISTORY = 300
 
 @dataclass(frozen=True)
 class TimelinePoint:
-    """One step of a robot's recent history, as the console plots it: t (the frame's step), the mode
-    after it, the asking signal's score (None when not scored: waiting, or teleop without a command)
-    and the denoising metric's U (None when not computed)."""
+    """One step of a robot's recent history, as the console plots it: t (the episode's clock: policy and
+    operator steps; holds while waiting do not advance it), the mode after it, the asking signal's score
+    (None when not scored: waiting, or teleop without a command) and the denoising metric's U (None when
+    not computed); asked / handed: at this step the robot asked for help / control changed hands (set by
+    ``Robot.record`` from the modes)."""
 
     t: int
     mode: str
     score: float | None
     U: float | None
+    asked: bool = False
+    handed: bool = False
 
 
 @dataclass(frozen=True)
@@ -96,8 +100,21 @@ class Robot:
         self.view = RobotView(**values | {"u_history": tuple(self.u_history), "timeline": tuple(self.timeline)})
 
     def record(self, point: TimelinePoint) -> None:
-        """Appends a step to the timeline; a robot not stepped (its frame's ``t`` unchanged) updates its last point."""
-        if self.timeline and self.timeline[-1].t == point.t:
-            self.timeline[-1] = point
-        else:
-            self.timeline.append(point)
+        """Appends a step to the timeline. At the same clock (a robot holding while it waits) the last point
+        takes the new mode and keeps the scores it had when the new point has none."""
+        last = self.timeline[-1] if self.timeline else None
+        before = last.mode if last is not None else point.mode
+        steady = "paused" in (before, point.mode)  # pausing and resuming change nothing for the plot
+        asked = not steady and point.mode == "waiting" and before != "waiting"
+        handed = not steady and (point.mode == "teleop") != (before == "teleop")
+        if last is None or last.t != point.t:
+            self.timeline.append(replace(point, asked=asked, handed=handed))
+            return
+        self.timeline[-1] = TimelinePoint(
+            point.t,
+            point.mode,
+            point.score if point.score is not None else last.score,
+            point.U if point.U is not None else last.U,
+            asked=last.asked or asked,
+            handed=last.handed or handed,
+        )

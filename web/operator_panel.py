@@ -48,7 +48,7 @@ JOGS = (  # label, hotkey, translation axis or None, rotation axis or None, sign
 HEARTBEAT_S = 1.0
 GIZMO_TOLERANCE = (0.002, 0.02)  # m, rad: a dragged target counts as reached
 NOTIFY_S = 8.0
-FOCUS_OFFSET = np.array([0.32, 0.22, 0.16])  # m, from the end effector: the probe ball fills the middle of the view
+FOCUS_OFFSET = np.array([0.17, 0.12, 0.05])  # m, from the end effector: the probe ball fills the middle of the view
 
 
 class OperatorPanel:

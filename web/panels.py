@@ -17,13 +17,13 @@ from server.assistance import AssistanceRequest
 from server.robot import RobotView
 from sim.tasks.open_drawer import DRAWER_NAMES
 
-MODE_BADGES = {
+MODE_BADGES = {  # plain glyphs only: the console's font has no emoji
     "autonomous": "autonomous",
-    "waiting": "**⚠ waiting for help**",
-    "teleop": "**✋ teleop**",
+    "waiting": "**⚠ waiting**",
+    "teleop": "**teleop**",
     "paused": "paused",
     "done": "episode done",
-    "faulted": "**✖ faulted**",
+    "faulted": "**⚠ faulted**",
 }
 KEY_MAP = (
     ("I / K", "+x / −x (away from / towards the robot base)"),
@@ -61,9 +61,10 @@ def asking_threshold(view: RobotView) -> tuple[str, float | None]:
 
 
 def _num(x: float | None, digits: int = 3) -> str:
+    """Compact: 3 significant digits, whole numbers from 1000 on (no exponent in a narrow table)."""
     if x is None or not math.isfinite(x):
         return "–"
-    return f"{x:.{digits}g}"
+    return f"{x:.0f}" if abs(x) >= 10**digits else f"{x:.{digits}g}"
 
 
 def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
@@ -161,19 +162,13 @@ def timeline_data(view: RobotView) -> tuple[np.ndarray, ...]:
     score = np.array([np.nan if p.score is None or not threshold else p.score / threshold for p in points])
     u_thr = view.slot.threshold
     u = np.array([np.nan if p.U is None or not u_thr else p.U / u_thr for p in points])
-    asked = np.full(len(points), np.nan)
-    handed = np.full(len(points), np.nan)
-    for i in range(1, len(points)):
-        before, after = points[i - 1].mode, points[i].mode
-        if after == "waiting" and before != "waiting":
-            asked[i] = 1.0
-        if (after == "teleop") != (before == "teleop") and "paused" not in (before, after):
-            handed[i] = 1.0
+    asked = np.array([1.0 if p.asked else np.nan for p in points])
+    handed = np.array([1.0 if p.handed else np.nan for p in points])
     return t, score, u, np.ones(len(points)), asked, handed
 
 
 TIMELINE_SERIES = (
-    {"label": "step"},
+    {"label": "episode step"},
     {"label": "score ÷ threshold", "stroke": "#0072B2", "width": 2},
     {"label": "U ÷ threshold", "stroke": "#888888", "width": 1},
     {"label": "threshold", "stroke": "#D55E00", "width": 1, "dash": [6, 4]},

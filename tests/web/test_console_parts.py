@@ -8,7 +8,9 @@ import numpy as np
 
 from policy.normalizer import MinMaxNormalizer
 from policy.uncertainty import UncertaintyResult
-from server.robot import TimelinePoint
+from server.commands import CommandMailbox
+from server.robot import Robot, TimelinePoint
+from sim.spaces import TeleopLimits
 from web.identity import Identity, IdentitySigner
 from web.panels import goal_text, key_map_markdown, timeline_data
 from web.scene import FIELD_LONGEST_M, MODE_COLORS, field_arrows, pose_delta, probe_radii
@@ -102,7 +104,10 @@ class _View:
     slot = _Slot()
 
     def __init__(self, modes):
-        self.timeline = tuple(TimelinePoint(t, m, 0.25 * (t + 1), 1.0 if t % 2 else None) for t, m in enumerate(modes))
+        robot = Robot(id=0, task="lift-cube", slot=None, seed=0, commands=CommandMailbox(TeleopLimits()))
+        for t, m in enumerate(modes):
+            robot.record(TimelinePoint(t, m, 0.25 * (t + 1), 1.0 if t % 2 else None))
+        self.timeline = tuple(robot.timeline)
 
 
 def test_the_timeline_marks_requests_and_changes_of_hands():
