@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs clean
+.PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs console-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -99,6 +99,13 @@ bench-docs: install
 loop-docs: install
 	$(BIN)/hitl bench loop --seconds 1200 --mode continuous --quiet > docs/loop-continuous.json
 	$(BIN)/hitl bench loop --seconds 1200 --mode budgeted --quiet > docs/loop-budgeted.json
+
+# The console's pictures (README, docs/console.md) and its cost: 4 protocol clients, then 4 Chromium browsers (~25 min).
+# The benchmark exits 1 when a goal is not met; its JSON says which, and is kept.
+console-docs: install
+	$(BIN)/hitl docs screenshots --out docs/img
+	$(BIN)/hitl bench console --clients wire --out docs/bench-console-wire.json --quiet || true
+	$(BIN)/hitl bench console --out docs/bench-console-chromium.json --quiet || true
 
 clean:
 	rm -rf $(VENV) .pytest_cache

@@ -31,6 +31,8 @@ def _cmd_bench_console(args: argparse.Namespace) -> int:
         idle_seconds=args.idle_seconds,
         control_hz=args.control_hz,
         nice=args.nice,
+        paint=not args.no_paint,
+        clients=args.clients,
         chromium=args.chromium,
         progress=not args.quiet,
     )
@@ -60,6 +62,15 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--idle-seconds", type=float, default=20.0)
     q.add_argument("--control-hz", type=float, default=10.0)
     q.add_argument("--nice", type=int, default=19, help="the browsers' niceness (they share this machine)")
+    q.add_argument(
+        "--no-paint", action="store_true", help="the pages take every update but do not paint the 3D view (software GL)"
+    )
+    q.add_argument(
+        "--clients",
+        choices=["chromium", "wire"],
+        default="chromium",
+        help="chromium: real browsers on this machine; wire: viser protocol clients, no browser (the service's cost)",
+    )
     q.add_argument("--chromium", default="/usr/bin/chromium")
     q.add_argument("--out", type=Path, default=None, help="also write the JSON here (e.g. docs/bench-console.json)")
     q.add_argument("--json", action="store_true")

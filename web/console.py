@@ -23,7 +23,7 @@ from web.identity import HEADER, Identity, IdentitySigner
 from web.operator_panel import OperatorPanel
 from web.panels import FleetSnapshot
 from web.scene import SceneModels
-from web.viser_internals import close_client, handshake_headers, on_handshake, remove_share_handlers
+from web.viser_internals import close_client, handshake_headers, on_handshake, quiet, remove_share_handlers
 
 log = logging.getLogger("hitl.console")
 
@@ -58,7 +58,8 @@ class Console:
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> None:
         # port 0: the OS picks a free ephemeral port (viser would otherwise take 8080 or the next free one)
-        server = viser.ViserServer(host="127.0.0.1", port=0, label=TITLE, verbose=False)
+        with quiet():
+            server = viser.ViserServer(host="127.0.0.1", port=0, label=TITLE, verbose=False)
         remove_share_handlers(server)
         server.gui.configure_theme(
             titlebar_content=None,
@@ -81,7 +82,8 @@ class Console:
             self._thread.join(timeout=5)
         self._builds.shutdown(wait=False, cancel_futures=True)
         if self.server is not None:
-            self.server.stop()
+            with quiet():
+                self.server.stop()
 
     @property
     def port(self) -> int:

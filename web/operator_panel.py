@@ -177,7 +177,6 @@ class OperatorPanel:
             return
         self._select(robot_id)
         with self._lock:
-            self._held.add(robot_id)
             self._gripper = None
 
     def _release(self, robot_id: int | None) -> None:
@@ -285,7 +284,9 @@ class OperatorPanel:
                         "Your lease ran out; the robot holds and waits in the queue.",
                         "red",
                     )
-            self._held, self._released = held_now, set()
+            # held robots come from snapshots only (a claim after this tick's snapshot shows up at the next);
+            # a hand-back is remembered until the snapshots stop showing the robot as held
+            self._held, self._released = held_now, self._released & held_now
         faulted = {rid for rid, v in snap.robots.items() if v.mode == "faulted"}
         for rid in sorted(faulted - self._faulted):
             self._notify(f"Robot {rid} faulted", snap.robots[rid].fault or "its worker stopped", "red")

@@ -15,6 +15,8 @@ of these. When upgrading, check each one against the new release; ``tests/web`` 
   console removes those handlers, and its proxy drops the messages (``message_type``).
 - ``handshake_headers`` / ``close_client``: viser's ``ClientHandle`` does not expose the WebSocket
   handshake, which carries the signed identity the proxy adds, nor a way to close one connection.
+- ``quiet()``: viser prints a panel with its address when it starts and a line when it stops, whatever
+  ``verbose`` says; the console logs its own line instead.
 - ``hide_model_groups``: mjviser shows geom and site groups 0-2; robosuite puts its collision geoms in
   group 0, and its sites are helpers (the grip site's tall cylinder, object markers), not the scene.
 """
@@ -22,7 +24,9 @@ of these. When upgrading, check each one against the new release; ``tests/web`` 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import importlib.resources
+import io
 from pathlib import Path
 
 import msgspec
@@ -105,3 +109,8 @@ def on_handshake(server: viser.ViserServer, callback) -> None:
         callback(connection.client_id)
 
     infra.on_client_connect(handler)
+
+
+def quiet():
+    """Swallows what viser prints to stdout (its start panel, its stop line) while in the block."""
+    return contextlib.redirect_stdout(io.StringIO())
