@@ -83,15 +83,13 @@ class OperatorPanel:
         self._dragging = False
         self._timeline_key: tuple = ()
         self._descriptions: dict[str, str] = {}
-        self._snapshot: FleetSnapshot | None = None
         self._build_gui()
         client.camera.position, client.camera.look_at = CAMERA_POSITION, CAMERA_LOOK_AT
 
     # -- building the GUI ---------------------------------------------------------------------------
     def _build_gui(self) -> None:
         gui = self.client.gui
-        who = gui.add_markdown(f"Logged in as **{self.identity.name}** ({self.identity.role})")
-        del who
+        gui.add_markdown(f"Logged in as **{self.identity.name}** ({self.identity.role})")
         tabs = gui.add_tab_group()
         with tabs.add_tab("Robot", viser.Icon.ROBOT):
             self.robot_select = gui.add_dropdown("Robot", options=("–",), initial_value="–")
@@ -237,7 +235,6 @@ class OperatorPanel:
 
     # -- the tick (console thread) -------------------------------------------------------------------------
     def tick(self, snap: FleetSnapshot) -> None:
-        self._snapshot = snap
         self._notifications(snap)
         self._heartbeat(snap)
         self._set(self.overview, "content", overview_markdown(snap, self.identity.name))
@@ -308,6 +305,8 @@ class OperatorPanel:
             for handles in self._queue_rows.values():
                 for h in handles:
                     h.remove()
+                    for attr in ("content", "disabled"):  # a new handle may get a removed one's id
+                        self._sent.pop((id(h), attr), None)
             self._queue_rows = {}
             with self.queue_folder:
                 for req in snap.queue:
