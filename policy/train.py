@@ -75,12 +75,16 @@ def train_policy(
     progress: bool = True,
     symmetry: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     symmetry_order: int = 1,
+    sampler: Callable[[int, torch.Generator], torch.Tensor] | None = None,
 ) -> tuple[DiffusionPolicy, dict]:
     """Trains ``policy`` (normalizers must already be fitted) on {OBS, ACTION} arrays.
 
     With ``cfg.symmetry_augment``, ``symmetry(obs, k)`` (a task's ``symmetric_observation``) turns
     each sampled observation history into one of its ``symmetry_order`` identical poses, drawn
     at random; the action is unchanged, since the scene is physically the same.
+
+    ``sampler(batch, generator)`` draws each mini-batch's row indices (default: uniform over all rows);
+    fine-tuning passes a ``policy.mixing.MixedSampler`` over takeover and pretraining rows concatenated.
 
     Returns (EMA policy, history with loss curves and timing).
     """
@@ -105,7 +109,8 @@ def train_policy(
         for step in range(cfg.steps):
             for group in opt.param_groups:
                 group["lr"] = cfg.lr * _lr_factor(step, cfg)
-            idx = torch.randint(0, n, (cfg.batch_size,), generator=g)
+            draw = sampler or (lambda size, gen: torch.randint(0, n, (size,), generator=gen))
+            idx = draw(cfg.batch_size, g)
             batch = {k: v[idx] for k, v in data.items()}
             if cfg.symmetry_augment:
                 turn = torch.randint(0, symmetry_order, (cfg.batch_size, 1), generator=g).numpy()
