@@ -68,7 +68,7 @@ class Console:
             show_logo=False,
             show_share_button=False,
         )
-        on_handshake(server, self._handshake)
+        on_handshake(server, self._handshake, self._hangup)
         server.on_client_connect(self._connect)
         server.on_client_disconnect(self._disconnect)
         self.server = server
@@ -104,7 +104,11 @@ class Console:
 
     # -- connections ---------------------------------------------------------------------------------
     def _handshake(self, client_id: int) -> None:
-        identity = self.signer.verify(handshake_headers(self.server, client_id).get(HEADER))
+        try:  # runs inside viser's connection handler: nothing may escape it
+            identity = self.signer.verify(handshake_headers(self.server, client_id).get(HEADER))
+        except Exception:
+            log.exception("console: could not read connection %d's identity", client_id)
+            identity = None
         if identity is None:
             log.warning("console: closed connection %d without a valid signed identity", client_id)
             close_client(self.server, client_id, "no valid identity: connect through the service's /console")
@@ -112,14 +116,25 @@ class Console:
         with self._lock:
             self._identities[client_id] = identity
 
+    def _hangup(self, client_id: int) -> None:
+        with self._lock:
+            self._identities.pop(client_id, None)
+            panel = self._panels.pop(client_id, None)
+        if panel is not None:
+            panel.closed = True
+
     def _connect(self, client: viser.ClientHandle) -> None:
         with self._lock:
             identity = self._identities.get(client.client_id)
         if identity is None:
             return
         panel = OperatorPanel(client, identity, self.fleet, self.models, self._builds, self.hz)
-        with self._lock:
-            self._panels[client.client_id] = panel
+        with self._lock:  # the browser may have gone while its panel was being built
+            if client.client_id in self._identities:
+                self._panels[client.client_id] = panel
+            else:
+                panel.closed = True
+                return
         log.info("console: %s (%s) connected", identity.name, identity.role)
 
     def _disconnect(self, client: viser.ClientHandle) -> None:
@@ -132,7 +147,8 @@ class Console:
 
     # -- the tick ---------------------------------------------------------------------------------------
     def snapshot(self) -> FleetSnapshot:
-        return FleetSnapshot({v.id: v for v in self.fleet.views()}, tuple(self.fleet.queue.pending()))
+        now = time.monotonic()  # before the reads: a claim made after ``now`` may be missing from them
+        return FleetSnapshot({v.id: v for v in self.fleet.views()}, tuple(self.fleet.queue.pending()), now)
 
     def _run(self) -> None:
         period = 1.0 / self.hz

@@ -49,12 +49,13 @@ class IdentitySigner:
         if not value or value.count(".") != 1:
             return None
         payload, mac = value.split(".")
-        if not hmac.compare_digest(self._mac(payload.encode()), mac):
-            return None
-        try:
-            body = json.loads(base64.urlsafe_b64decode(payload.encode()))
+        try:  # header bytes that are not ASCII arrive as surrogates: compared and decoded as bytes, or refused
+            raw = payload.encode("ascii")
+            if not hmac.compare_digest(self._mac(raw).encode("ascii"), mac.encode("utf-8", "surrogateescape")):
+                return None
+            body = json.loads(base64.urlsafe_b64decode(raw))
             name, role, exp = str(body["name"]), str(body["role"]), float(body["exp"])
-        except (ValueError, KeyError, TypeError):
+        except (ValueError, KeyError, TypeError, UnicodeError):
             return None
         if exp < time.time() or role not in ROLES:
             return None

@@ -31,7 +31,7 @@ from web.panels import (
     robot_markdown,
     timeline_data,
 )
-from web.scene import CAMERA_LOOK_AT, CAMERA_POSITION, RobotScene, SceneModels, pose_delta
+from web.scene import CAMERA_LOOK_AT, CAMERA_POSITION, RobotScene, SceneModels, pose_delta, probe_radius
 
 log = logging.getLogger("hitl.console")
 
@@ -77,6 +77,8 @@ class OperatorPanel:
         self._held: set[int] = set()
         self._faulted: set[int] = set()
         self._released: set[int] = set()
+        self._claimed: dict[int, float] = {}  # robot -> when this browser claimed it: the only leases it renews
+        self._gizmo_sent_t: tuple[int, int] | None = None  # (robot, frame t) of the last gizmo command
         self._last_heartbeat = 0.0
         self._gripper: float | None = None  # the gripper command this operator sends
         self._drag: tuple[np.ndarray, np.ndarray] | None = None
@@ -176,6 +178,7 @@ class OperatorPanel:
         self._select(robot_id)
         with self._lock:
             self._gripper = None
+            self._claimed[robot_id] = time.monotonic()
 
     def _release(self, robot_id: int | None) -> None:
         if robot_id is None:
@@ -187,21 +190,22 @@ class OperatorPanel:
             return
         with self._lock:
             self._released.add(robot_id)
+            self._claimed.pop(robot_id, None)
             self._drag = None
 
-    def _current_gripper(self) -> float:
-        view = self.fleet.view(self.robot_id) if self.robot_id is not None else None
+    def _current_gripper(self, rid: int) -> float:
         if self._gripper is None:
-            frame = view.frame if view is not None else None
+            frame = self.fleet.view(rid).frame
             self._gripper = frame.gripper_command if frame is not None else -1.0
         return self._gripper
 
-    def _send(self, delta_pos, delta_rot, quiet_429: bool = True) -> bool:
-        rid = self.robot_id
+    def _send(self, delta_pos, delta_rot, quiet_429: bool = True, rid: int | None = None) -> bool:
+        """A command to ``rid`` (default: the robot on view, read once)."""
+        rid = self.robot_id if rid is None else rid
         if rid is None:
             return False
         try:
-            self.actions.command(rid, delta_pos, delta_rot, self._current_gripper())
+            self.actions.command(rid, delta_pos, delta_rot, self._current_gripper(rid))
         except ServiceError as exc:
             if exc.status != 429 or not quiet_429:  # 429: the composed step is full; the next tick takes more
                 self._refused(f"Command to robot {rid}", exc)
@@ -226,7 +230,9 @@ class OperatorPanel:
             self._gripper = previous
 
     def _toggle_gripper(self) -> None:
-        self._set_gripper(-1.0 if self._current_gripper() > 0 else 1.0)
+        rid = self.robot_id
+        if rid is not None:
+            self._set_gripper(-1.0 if self._current_gripper(rid) > 0 else 1.0)
 
     def _on_drag(self, pos: np.ndarray, wxyz: np.ndarray, phase: str) -> None:
         with self._lock:
@@ -293,10 +299,14 @@ class OperatorPanel:
         if snap.now - self._last_heartbeat < HEARTBEAT_S:
             return
         self._last_heartbeat = snap.now
-        for req in snap.queue:
-            if req.holder == self.identity.name:
-                with contextlib.suppress(ServiceError):  # the lease ran out or went back: a notification says so
-                    self.actions.heartbeat(req.robot_id)
+        with self._lock:  # only leases this browser took: one held through the API or another tab is theirs
+            held = {r.robot_id for r in snap.queue if r.holder == self.identity.name}
+            # a claim made after this snapshot was taken is not in it yet: kept until a later snapshot
+            self._claimed = {rid: t for rid, t in self._claimed.items() if rid in held or t > snap.now}
+            mine = sorted(rid for rid in self._claimed if rid in held)
+        for rid in mine:
+            with contextlib.suppress(ServiceError):  # the lease ran out or went back: a notification says so
+                self.actions.heartbeat(rid)
 
     def _queue(self, snap: FleetSnapshot) -> None:
         me = self.identity.name
@@ -352,8 +362,8 @@ class OperatorPanel:
         self._scene(view, holding)
 
     def _scene(self, view, holding: bool) -> None:
-        if self.scene is None or self.scene.robot_id != view.id:
-            self._build_scene(view)
+        if self.scene is None or (self.scene.robot_id, self.scene.version) != (view.id, view.slot.version):
+            self._build_scene(view)  # another robot, or its policy swapped: the field's units come from the policy
             return
         scene = self.scene
         scene.update(view.frame, view.last_result)
@@ -373,7 +383,17 @@ class OperatorPanel:
                 with self._lock:
                     self._drag = None
             return
-        self._send(_clamp(delta_pos, self.limits.max_delta_pos), _clamp(delta_rot, self.limits.max_delta_rot))
+        # one command per frame: until the frame that applied the last one arrives, the robot still looks where
+        # it was, and sending the same step again would overshoot
+        if self._gizmo_sent_t is not None and self._gizmo_sent_t >= (view.id, view.frame.t):
+            return
+        with self._lock:
+            if view.id in self._released:  # handed back since this tick's snapshot
+                return
+        if self._send(
+            _clamp(delta_pos, self.limits.max_delta_pos), _clamp(delta_rot, self.limits.max_delta_rot), rid=view.id
+        ):
+            self._gizmo_sent_t = (view.id, view.frame.t)
 
     def _build_scene(self, view) -> None:
         """Builds the robot's scene off the tick (a few seconds); the tick keeps the panel live meanwhile."""
@@ -388,7 +408,9 @@ class OperatorPanel:
             model = self.models.copy(view.task)
             if self.closed:
                 return
-            scene = RobotScene(self.client, view.id, model, view.slot.policy.action_normalizer)
+            scene = RobotScene(
+                self.client, view.id, model, view.slot.policy.action_normalizer, view.slot.version, probe_radius(view)
+            )
             self.scene = scene
             log.debug(
                 "console: scene of robot %d for %s in %.1f s", view.id, self.identity.name, time.monotonic() - started

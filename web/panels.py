@@ -41,7 +41,7 @@ KEY_NOTE = "W/A/S/D/Q/E and the arrow keys move the camera."
 @dataclass(frozen=True)
 class FleetSnapshot:
     """One tick's view of the fleet, shared by every browser: robots by id, the queue as the service
-    sorts it, and when (monotonic seconds)."""
+    sorts it, and when (monotonic seconds, taken before the reads)."""
 
     robots: dict[int, RobotView]
     queue: tuple[AssistanceRequest, ...]

@@ -58,7 +58,11 @@ async def relay(
         log.warning("console: the viser server did not accept the connection: %s", exc)
         await browser.close(1011, "console unavailable")
         return stats
-    await browser.accept(subprotocol=SUBPROTOCOL)
+    try:
+        await browser.accept(subprotocol=SUBPROTOCOL)
+    except BaseException:
+        await upstream.close()
+        raise
 
     async def browser_to_upstream() -> None:
         while True:

@@ -106,6 +106,12 @@ def probe_radii(normalizer, radius: float = UncertaintyConfig.radius) -> np.ndar
     return radius * normalizer.span[:3].numpy().astype(np.float64)
 
 
+def probe_radius(view) -> float:
+    """The probe radius r of the robot's denoising signal (the paper's default when it runs none)."""
+    signal = view.slot.controller.signals.get("denoising")
+    return float(getattr(getattr(signal, "config", None), "radius", UncertaintyConfig.radius))
+
+
 def wxyz(quat_xyzw: np.ndarray) -> np.ndarray:
     q = np.asarray(quat_xyzw, dtype=np.float64)
     return np.array([q[3], q[0], q[1], q[2]])
@@ -114,8 +120,17 @@ def wxyz(quat_xyzw: np.ndarray) -> np.ndarray:
 class RobotScene:
     """The scene of one robot in one browser (built in about 2-3 s: call it off the event loop)."""
 
-    def __init__(self, client: viser.ClientHandle, robot_id: int, model: mujoco.MjModel, normalizer) -> None:
-        self.client, self.robot_id, self.normalizer = client, robot_id, normalizer
+    def __init__(
+        self,
+        client: viser.ClientHandle,
+        robot_id: int,
+        model: mujoco.MjModel,
+        normalizer,
+        version: int,
+        radius: float = UncertaintyConfig.radius,
+    ) -> None:
+        """normalizer: the action normalizer of policy ``version`` (the field's units); radius: the probe's r."""
+        self.client, self.robot_id, self.normalizer, self.version = client, robot_id, normalizer, version
         hide_model_groups(model)
         self.model, self.data = model, mujoco.MjData(model)
         self.mj = ViserMujocoScene(client, model, num_envs=1)
@@ -128,7 +143,7 @@ class RobotScene:
             radius=1.0,
             color=PROBE_COLOR,
             opacity=0.18,
-            scale=tuple(probe_radii(normalizer)),
+            scale=tuple(probe_radii(normalizer, radius)),
             cast_shadow=False,
             receive_shadow=False,
         )

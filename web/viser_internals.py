@@ -100,15 +100,13 @@ def hide_model_groups(model, groups: tuple[int, ...] = (0,)) -> None:
     model.site_group[:] = HIDDEN_GROUP
 
 
-def on_handshake(server: viser.ViserServer, callback) -> None:
+def on_handshake(server: viser.ViserServer, callback, hangup) -> None:
     """``callback(client_id)`` right after a WebSocket handshake, before viser's own connect callbacks
-    (which wait for the client's first camera message) and before the client is sent its state."""
+    (which wait for the client's first camera message) and before the client is sent its state;
+    ``hangup(client_id)`` when that connection ends, whether or not viser's own callbacks ran."""
     infra = server._websock_server
-
-    def handler(connection) -> None:
-        callback(connection.client_id)
-
-    infra.on_client_connect(handler)
+    infra.on_client_connect(lambda connection: callback(connection.client_id))
+    infra.on_client_disconnect(lambda connection: hangup(connection.client_id))
 
 
 def quiet():

@@ -26,6 +26,8 @@ def test_a_signed_identity_verifies_and_a_tampered_or_expired_one_does_not():
     assert signer.verify(forged) is None  # another payload under alice's signature
     assert IdentitySigner().verify(value) is None  # another key
     assert signer.verify(None) is None and signer.verify("") is None and signer.verify("a.b.c") is None
+    # header bytes that are not ASCII arrive as surrogates: refused, never an exception in viser's handler
+    assert signer.verify(payload + ".\udcff\udcfe") is None and signer.verify("é\udcff." + mac) is None
     short = IdentitySigner(ttl_s=0.01)
     old = short.sign(Identity("bob", "viewer"))
     time.sleep(0.05)
