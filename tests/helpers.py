@@ -1,7 +1,9 @@
 """Shared test helpers: a tiny untrained policy for the simulated tasks, and a real uvicorn service
 on 127.0.0.1 that stops by itself."""
 
+import signal
 import socket
+import subprocess
 import threading
 import time
 
@@ -61,6 +63,16 @@ def wait_for(fn, timeout: float = 30.0):
             return value
         time.sleep(0.05)
     raise AssertionError("condition not met in time")
+
+
+def stop_process(proc, timeout: float = 60.0) -> None:
+    """SIGTERM, then SIGKILL if ``proc`` (a ``subprocess.Popen``) has not exited within ``timeout``."""
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 class Service:

@@ -53,8 +53,3 @@ class ConsoleActions:
         except ValidationError as exc:
             raise ServiceError(422, "; ".join(e["msg"] for e in exc.errors())) from exc
         return self.fleet.command(robot_id, self.identity.name, body.to_command())
-
-    def holds(self, robot_id: int) -> bool:
-        """This user holds the robot's lease."""
-        req = self.fleet.queue.get(robot_id)
-        return req is not None and req.holder == self.identity.name

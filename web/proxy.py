@@ -15,7 +15,6 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 
 import websockets
 from starlette.websockets import WebSocket, WebSocketDisconnect
@@ -29,22 +28,13 @@ CLOSE_SESSION_ENDED = 1008  # policy violation: the session ended (log-out, revo
 CLOSE_TEXT_FRAME = 1003  # unsupported data
 
 
-@dataclass
-class RelayStats:
-    to_upstream: int = 0
-    to_browser: int = 0
-    bytes_to_browser: int = 0
-    dropped: int = 0
-
-
 async def relay(
     browser: WebSocket,
     upstream_url: str,
     headers: dict[str, str],
     alive: Callable[[], Awaitable[bool]],
     check_s: float = CHECK_S,
-) -> RelayStats:
-    stats = RelayStats()
+) -> None:
     try:
         upstream = await websockets.connect(
             upstream_url,
@@ -57,7 +47,7 @@ async def relay(
     except (OSError, websockets.WebSocketException, TimeoutError) as exc:
         log.warning("console: the viser server did not accept the connection: %s", exc)
         await browser.close(1011, "console unavailable")
-        return stats
+        return
     try:
         await browser.accept(subprotocol=SUBPROTOCOL)
     except BaseException:
@@ -74,17 +64,13 @@ async def relay(
                 await browser.close(CLOSE_TEXT_FRAME, "binary frames only")
                 return
             if message_type(data) in SHARE_MESSAGES:
-                stats.dropped += 1
                 continue
             await upstream.send(data)
-            stats.to_upstream += 1
 
     async def upstream_to_browser() -> None:
         async for data in upstream:
             if isinstance(data, bytes):
                 await browser.send_bytes(data)
-                stats.to_browser += 1
-                stats.bytes_to_browser += len(data)
 
     async def watch_session() -> None:
         while True:
@@ -108,4 +94,3 @@ async def relay(
                 log.warning("console relay ended with %r", result)
         with contextlib.suppress(RuntimeError, WebSocketDisconnect):  # already closed
             await browser.close()
-    return stats

@@ -32,6 +32,8 @@ MODE_COLORS = np.array(
 PROBE_COLOR = (90, 140, 255)
 FIELD_LONGEST_M = 0.03  # the longest field arrow; the others keep their lengths relative to it
 MODE_LENGTH_M = 0.06  # a mode mean's arrow, at the mode's share of the samples
+FIELD_STYLE = {"shaft_radius": 0.0006, "head_radius": 0.0016, "head_length": 0.004}  # m
+MODE_STYLE = {"shaft_radius": 0.0025, "head_radius": 0.006, "head_length": 0.012}  # m: the mode means, bold
 CAMERA_POSITION = (1.25, 0.95, 1.55)
 CAMERA_LOOK_AT = (-0.05, 0.0, 0.9)
 
@@ -152,9 +154,7 @@ class RobotScene:
             f"{prefix}/field/samples",
             np.zeros((1, 2, 3)),
             np.zeros((1, 3), np.uint8),
-            shaft_radius=0.0006,
-            head_radius=0.0016,
-            head_length=0.004,
+            **FIELD_STYLE,
             visible=False,
         )
         self.modes: viser.ArrowsHandle | None = None
@@ -188,12 +188,7 @@ class RobotScene:
         if self.field.points.shape != arrows.field.shape:
             self.field.remove()
             self.field = self.client.scene.add_arrows(
-                f"/robots/{self.robot_id}/field/samples",
-                arrows.field,
-                arrows.colors,
-                shaft_radius=0.0006,
-                head_radius=0.0016,
-                head_length=0.004,
+                f"/robots/{self.robot_id}/field/samples", arrows.field, arrows.colors, **FIELD_STYLE
             )
         else:
             self.field.colors = arrows.colors
@@ -201,12 +196,7 @@ class RobotScene:
             self.field.visible = True
         if len(arrows.modes):
             self.modes = self.client.scene.add_arrows(
-                f"/robots/{self.robot_id}/field/modes",
-                arrows.modes,
-                arrows.mode_colors,
-                shaft_radius=0.0025,
-                head_radius=0.006,
-                head_length=0.012,
+                f"/robots/{self.robot_id}/field/modes", arrows.modes, arrows.mode_colors, **MODE_STYLE
             )
 
     def show_target(self, on_drag: Callable[[np.ndarray, np.ndarray, str], None]) -> None:

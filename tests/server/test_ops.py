@@ -9,7 +9,6 @@ import logging
 import math
 import os
 import re
-import signal
 import subprocess
 import sys
 import time
@@ -28,7 +27,7 @@ from server.app import QuietPolling, announce_ready, install_log_filters
 from server.auth import create_token
 from server.db import make_engine, migrate, session_factory
 from server.settings import Settings
-from tests.helpers import free_port, tiny_policy_folder, wait_for
+from tests.helpers import free_port, stop_process, tiny_policy_folder, wait_for
 
 SERVER_MESSAGES = ("TeleopStateMessage", "TeleopAcceptedMessage", "TeleopErrorMessage")
 
@@ -72,12 +71,7 @@ def service(tmp_path_factory):
             time.sleep(0.1)
         yield SimpleNamespace(url=url, ws=url.replace("http", "ws"), tokens=tokens, log=log_path, policy=policy)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_process(proc)
 
 
 def _h(svc, role):

@@ -4,7 +4,6 @@ playwright (``.ci/run`` installs both; ``playwright install`` is never used)."""
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -13,7 +12,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.helpers import free_port
+from tests.helpers import free_port, stop_process
 
 CHROMIUM = os.environ.get("HITL_CHROMIUM", "/usr/bin/chromium")
 HITL = [sys.executable, "-m", "hitl.cli"]
@@ -80,11 +79,7 @@ def served(tmp_path_factory):
             raise RuntimeError("hitl serve did not become ready:\n" + (root / "serve.log").read_text())
         yield Served(url, tokens)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_process(proc)
         log.close()
 
 
