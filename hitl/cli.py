@@ -156,13 +156,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="write the markdown table here (e.g. docs/experts.md)")
     p.set_defaults(func=_cmd_experts)
 
-    from hitl import bench_commands, console_commands, policy_commands, server_commands, signal_commands
+    from hitl import (
+        bench_commands,
+        console_commands,
+        policy_commands,
+        registry_commands,
+        server_commands,
+        signal_commands,
+    )
 
     bench = policy_commands.register(sub)
     signal_commands.register(sub, bench)
     server_commands.register(sub, bench)
     bench_commands.register(bench)
     console_commands.register(sub, bench)
+    registry_commands.register(sub)
     return parser
 
 

@@ -7,13 +7,16 @@ what gets returned and saved, as in Chi et al.
 from __future__ import annotations
 
 import copy
+import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from policy.diffusion_policy import DiffusionPolicy
@@ -49,6 +52,69 @@ class TrainConfig:
         return asdict(self)
 
 
+@dataclass
+class TrainState:
+    """Everything needed to continue a training run exactly where it stopped: the next step, the
+    weights, the EMA weights, the optimizer's moments, the sampling generator and the loss history.
+    Saved as ``train_state.safetensors`` + ``train_state.json`` (no pickle)."""
+
+    step: int
+    model: dict[str, torch.Tensor]
+    ema: dict[str, torch.Tensor]
+    optimizer: dict
+    generator: torch.Tensor
+    running: float
+    history: dict = field(default_factory=dict)
+
+    TENSORS = "train_state.safetensors"
+    META = "train_state.json"
+
+    def save(self, folder: str | Path) -> Path:
+        """Writes both files atomically (a crash mid-save leaves the previous state readable)."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        tensors = {f"model.{k}": v for k, v in self.model.items()}
+        tensors |= {f"ema.{k}": v for k, v in self.ema.items()}
+        tensors["generator"] = self.generator
+        for idx, moments in self.optimizer["state"].items():
+            for key, value in moments.items():
+                tensors[f"opt.{idx}.{key}"] = torch.as_tensor(value)
+        tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
+        meta = {
+            "step": self.step,
+            "running": self.running,
+            "history": self.history,
+            "param_groups": self.optimizer["param_groups"],
+        }
+        for name, write in (
+            (self.TENSORS, lambda tmp: save_file(tensors, str(tmp))),
+            (self.META, lambda tmp: tmp.write_text(json.dumps(meta) + "\n")),
+        ):
+            tmp = folder / (name + ".tmp")
+            write(tmp)
+            tmp.replace(folder / name)
+        return folder
+
+    @classmethod
+    def exists(cls, folder: str | Path) -> bool:
+        return (Path(folder) / cls.TENSORS).is_file() and (Path(folder) / cls.META).is_file()
+
+    @classmethod
+    def load(cls, folder: str | Path) -> TrainState:
+        folder = Path(folder)
+        tensors = load_file(str(folder / cls.TENSORS))
+        meta = json.loads((folder / cls.META).read_text())
+        model = {k.removeprefix("model."): v for k, v in tensors.items() if k.startswith("model.")}
+        ema = {k.removeprefix("ema."): v for k, v in tensors.items() if k.startswith("ema.")}
+        state: dict[int, dict] = {}
+        for k, v in tensors.items():
+            if k.startswith("opt."):
+                _, idx, key = k.split(".", 2)
+                state.setdefault(int(idx), {})[key] = v
+        optimizer = {"state": state, "param_groups": meta["param_groups"]}
+        return cls(meta["step"], model, ema, optimizer, tensors["generator"], meta["running"], meta["history"])
+
+
 def _lr_factor(step: int, cfg: TrainConfig) -> float:
     if step < cfg.warmup_steps:
         return (step + 1) / cfg.warmup_steps
@@ -76,6 +142,9 @@ def train_policy(
     symmetry: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     symmetry_order: int = 1,
     sampler: Callable[[int, torch.Generator], torch.Tensor] | None = None,
+    resume: TrainState | None = None,
+    checkpoint: Callable[[TrainState], None] | None = None,
+    checkpoint_every: int = 100,
 ) -> tuple[DiffusionPolicy, dict]:
     """Trains ``policy`` (normalizers must already be fitted) on {OBS, ACTION} arrays.
 
@@ -85,6 +154,9 @@ def train_policy(
 
     ``sampler(batch, generator)`` draws each mini-batch's row indices (default: uniform over all rows);
     fine-tuning passes a ``policy.mixing.MixedSampler`` over takeover and pretraining rows concatenated.
+
+    ``checkpoint(state)`` receives a ``TrainState`` every ``checkpoint_every`` steps (and after the
+    last); ``resume`` continues from one: the result is the same as an uninterrupted run's.
 
     Returns (EMA policy, history with loss curves and timing).
     """
@@ -101,12 +173,30 @@ def train_policy(
     ema = copy.deepcopy(policy).eval()
     opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     history: dict = {"step": [], "train_loss": [], "val_step": [], "val_loss": []}
-    bar = tqdm(total=cfg.steps, desc="train", disable=not progress, unit="step", smoothing=0.05)
+    running, first = 0.0, 0
+    if resume is not None:
+        policy.load_state_dict(resume.model)
+        ema.load_state_dict(resume.ema)
+        opt.load_state_dict(resume.optimizer)
+        g.set_state(resume.generator)
+        running, first, history = resume.running, resume.step, copy.deepcopy(resume.history)
+
+    def snapshot(next_step: int) -> TrainState:
+        return TrainState(
+            next_step,
+            {k: v.detach().clone() for k, v in policy.state_dict().items()},
+            {k: v.detach().clone() for k, v in ema.state_dict().items()},
+            copy.deepcopy(opt.state_dict()),
+            g.get_state(),
+            running,
+            copy.deepcopy(history),
+        )
+
+    bar = tqdm(total=cfg.steps, initial=first, desc="train", disable=not progress, unit="step", smoothing=0.05)
     start = time.perf_counter()
-    running = 0.0
     try:
         policy.train()
-        for step in range(cfg.steps):
+        for step in range(first, cfg.steps):
             for group in opt.param_groups:
                 group["lr"] = cfg.lr * _lr_factor(step, cfg)
             draw = sampler or (lambda size, gen: torch.randint(0, n, (size,), generator=gen))
@@ -136,6 +226,8 @@ def train_policy(
                 history["val_loss"].append(_val_loss(ema, val_t, cfg.seed))
                 bar.set_postfix(loss=f"{running:.4f}", val=f"{history['val_loss'][-1]:.4f}")
             bar.update(1)
+            if checkpoint is not None and ((step + 1) % checkpoint_every == 0 or step == cfg.steps - 1):
+                checkpoint(snapshot(step + 1))
     finally:
         bar.close()
         policy.eval()

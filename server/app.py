@@ -24,13 +24,14 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.api import assistance, console, records, robots, system, ws_messages
+from server.api import assistance, console, finetune, policies, records, robots, system, ws_messages
 from server.api.schemas import ErrorOut, FieldError
 from server.auth import TokenCache
 from server.db import make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.fleet import Fleet
 from server.recording import recover
+from server.scheduler import JobLauncher, Scheduler
 from server.settings import Settings
 from web.console import Console
 from web.sessions import ConsoleSessions
@@ -197,12 +198,22 @@ def create_app(settings: Settings) -> FastAPI:
             app.state.console.start()
         fleet.start()
         log.info("fleet of %d robot(s) started; ready once its control loop has ticked", len(fleet.robots))
+        app.state.launcher = JobLauncher(settings.data_dir, url, settings.finetune.niceness, settings.finetune.promote)
+        app.state.scheduler = None
+        if settings.finetune.schedule:
+            app.state.scheduler = Scheduler(
+                settings.finetune.schedule, lambda due: app.state.launcher.launch("schedule")
+            )
+            app.state.scheduler.start()
         announcer = asyncio.create_task(announce_ready(app))
         try:
             yield
         finally:
             announcer.cancel()
             await asyncio.gather(announcer, return_exceptions=True)
+            if app.state.scheduler is not None:
+                app.state.scheduler.stop()
+            app.state.launcher.stop()  # a job in progress records itself interrupted and resumes next time
             if app.state.console is not None:
                 app.state.console.stop()
             fleet.stop()
@@ -232,7 +243,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.include_router(system.router)
     app.include_router(console.router)
-    for router in (robots.router, assistance.router, records.router, system.api):
+    for router in (robots.router, assistance.router, records.router, policies.router, finetune.router, system.api):
         app.include_router(router, prefix=API_PREFIX)
     _add_docs(app)
     return app

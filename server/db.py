@@ -8,9 +8,22 @@ from pathlib import Path
 
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, create_engine, event
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    UniqueConstraint,
+    create_engine,
+    event,
+)
 from sqlalchemy.engine import Engine
+from sqlalchemy.ext.compiler import compiles
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+from sqlalchemy.sql.functions import FunctionElement
 from sqlalchemy.types import TypeDecorator
 
 MIGRATIONS = Path(__file__).parent / "migrations"
@@ -47,16 +60,51 @@ class ApiToken(Base):
     revoked: Mapped[bool] = mapped_column(Boolean, default=False)
 
 
+class db_epoch(FunctionElement):  # noqa: N801 - reads like the SQL function it renders
+    """The database server's clock in seconds since the epoch (a float): leases expire by this clock, so
+    processes on machines whose clocks disagree still agree on who holds one."""
+
+    type = Float()
+    inherit_cache = True
+
+
+@compiles(db_epoch)
+def _epoch_default(element, compiler, **kw) -> str:  # PostgreSQL; clock_timestamp() is not frozen per transaction
+    return "extract(epoch from clock_timestamp())"
+
+
+@compiles(db_epoch, "sqlite")
+def _epoch_sqlite(element, compiler, **kw) -> str:
+    return "((julianday('now') - 2440587.5) * 86400.0)"
+
+
 class PolicyVersion(Base):
+    """One version of a policy lineage (``name``), addressed as ``name@version``.
+
+    manifest: the data it was trained on (pretraining episodes, takeover segments); calibration: its
+    threshold and the calibration set; evaluation: success per task; status_reason: why it has its
+    status (the promotion gate's decision, a promote or rollback)."""
+
     __tablename__ = "policy_versions"
+    __table_args__ = (UniqueConstraint("name", "version", name="uq_policy_versions_name_version"),)
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     name: Mapped[str] = mapped_column(String(256))
+    version: Mapped[int] = mapped_column(Integer, default=1)
     path: Mapped[str] = mapped_column(String(1024), unique=True)
     task: Mapped[str] = mapped_column(String(64))
     threshold: Mapped[float | None] = mapped_column(Float, nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     status: Mapped[str] = mapped_column(String(16), default="candidate", index=True)  # see POLICY_STATUSES
     parent_id: Mapped[int | None] = mapped_column(ForeignKey("policy_versions.id"), nullable=True)
+    manifest: Mapped[dict] = mapped_column(JSON, default=dict)
+    calibration: Mapped[dict] = mapped_column(JSON, default=dict)
+    evaluation: Mapped[dict] = mapped_column(JSON, default=dict)
+    command: Mapped[str | None] = mapped_column(String(2048), nullable=True)
+    status_reason: Mapped[str | None] = mapped_column(String(1024), nullable=True)
+
+    @property
+    def ref(self) -> str:
+        return f"{self.name}@{self.version}"
 
 
 POLICY_STATUSES = ("candidate", "active", "retired")
@@ -109,6 +157,51 @@ class SegmentRecord(Base):
     meta: Mapped[dict] = mapped_column(JSON, default=dict)
     started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), nullable=True)
+
+
+JOB_STATUSES = ("queued", "running", "succeeded", "failed", "interrupted")
+
+
+class FinetuneJob(Base):
+    """One fine-tuning run of a lineage: from the parent version to a candidate (or promoted) child.
+
+    status: one of JOB_STATUSES (``succeeded`` means the job finished; ``gate`` says whether its version
+    was promoted); stage: what it is doing (data, train, calibrate, evaluate, gate); data: counts, the
+    segments used and the ones skipped with their reason; work_dir: its checkpoints (relative to the
+    service's data_dir), from which an interrupted job resumes."""
+
+    __tablename__ = "finetune_jobs"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    lineage: Mapped[str] = mapped_column(String(256), index=True)
+    status: Mapped[str] = mapped_column(String(16), index=True, default="queued")
+    stage: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    source: Mapped[str] = mapped_column(String(32), default="takeovers")
+    trigger: Mapped[str] = mapped_column(String(32), default="cli")
+    parent_id: Mapped[int | None] = mapped_column(ForeignKey("policy_versions.id"), nullable=True)
+    version_id: Mapped[int | None] = mapped_column(ForeignKey("policy_versions.id"), nullable=True)
+    since: Mapped[datetime | None] = mapped_column(UTCDateTime(), nullable=True)
+    data: Mapped[dict] = mapped_column(JSON, default=dict)
+    evaluation: Mapped[dict] = mapped_column(JSON, default=dict)
+    gate: Mapped[dict] = mapped_column(JSON, default=dict)
+    error: Mapped[str | None] = mapped_column(String(4096), nullable=True)
+    command: Mapped[str | None] = mapped_column(String(2048), nullable=True)
+    work_dir: Mapped[str | None] = mapped_column(String(1024), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), nullable=True)
+    ended_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), nullable=True)
+
+
+class JobLease(Base):
+    """A named lease (one row per name): held by ``owner`` until ``expires_at`` (seconds since the
+    epoch, by the database's clock); ``fence`` grows by one at every acquisition, so a holder that
+    lost its lease cannot write as if it still held it (server.lease)."""
+
+    __tablename__ = "job_leases"
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    owner: Mapped[str | None] = mapped_column(String(256), nullable=True)
+    fence: Mapped[int] = mapped_column(Integer, default=0)
+    expires_at: Mapped[float] = mapped_column(Float, default=0.0)
 
 
 def _sqlite_dir(url: str) -> None:

@@ -11,9 +11,12 @@ Modes: ``autonomous -> waiting -> teleop -> autonomous`` (the controller's), plu
 stepped: the scene and the episode clock are frozen), ``done`` (then the next episode starts) and
 ``faulted`` (the worker died; it is restarted with backoff).
 
-Policies swap without a restart: ``activate_policy`` loads the new version outside the fleet lock;
-each robot of its task moves to it at its next episode boundary, and a robot in the middle of an
-episode finishes it on the version it started with.
+Policies swap without a restart. The registry (``server.registry``) says which version of each
+lineage is active; ``sync_policies`` (called by a watcher thread every ``policy_poll_seconds``, and at
+once by ``activate_policy``) loads a newly active version outside the fleet lock, and each robot of
+that lineage moves to it at its next episode boundary; a robot in the middle of an episode finishes
+it on the version it started with. So ``hitl policy promote`` or a fine-tuning job's promotion, from
+another process, reaches the running fleet the same way as the admin API.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from sqlalchemy.orm import sessionmaker
 
 from policy.checkpoint import CheckpointError, read_info
 from policy.controller import WATCHDOG, Mode, RobotStep, ends_episode
+from server import registry
 from server.assistance import AssistanceQueue
 from server.commands import CommandMailbox
 from server.db import PolicyVersion
@@ -60,10 +64,12 @@ class Fleet:
         self.recorder = Recorder(sessions, settings.data_dir, settings.record_episodes)
         self.robots: dict[int, Robot] = {}
         self.slots: dict[int, PolicySlot] = {}  # by policy version id
-        self.assigned: dict[str, PolicySlot] = {}  # task -> the slot its robots move to at their next episode
+        self.assigned: dict[str, PolicySlot] = {}  # lineage -> the slot its robots move to at their next episode
+        self._unloadable: dict[int, str] = {}  # active versions that failed to load, and why (not retried)
         self.lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._watcher: threading.Thread | None = None
         self._swap_lock = threading.Lock()  # one policy load at a time (outside the fleet lock)
         self.ticks = 0
         self.env_steps = 0  # actions sent to workers, all robots, since start
@@ -88,23 +94,36 @@ class Fleet:
                 rid += 1
 
     def _serve(self, path: Path, task: str) -> PolicySlot:
-        """The configured policy of a robot group: registered (active) and loaded."""
+        """The configured policy of a robot group, registered, and its lineage's active version loaded: a
+        version promoted since (a fine-tuned one) is served, not the configured folder; a lineage with
+        no active version gets the configured folder as its active one."""
         key = str(Path(path).resolve())
         with self.sessions() as s:
             row = s.scalars(select(PolicyVersion).where(PolicyVersion.path == key)).one_or_none()
-            if row is None:
-                info = _policy_info(Path(key))
-                row = PolicyVersion(name=Path(key).name, path=key, task=info.get("task", task), status="active")
-                s.add(row)
-                s.commit()
-            version = row.id
-        if version not in self.slots:
-            self.slots[version] = load_slot(self.settings, Path(key), task, version)
+        if row is None:
+            info = _policy_info(Path(key))
+            row = registry.register(
+                self.sessions, key, info.get("task", task), status="candidate", command=info.get("command")
+            )
+        try:
+            active = registry.resolve(self.sessions, registry.PolicyRef(row.name))
+        except ServiceError:  # no active version yet
+            active = registry.promote(self.sessions, row.id, "configured in the service's settings")
+        if active.id != row.id:
+            log.info(
+                "policy %s: serving its active version %s (%s), not the configured folder",
+                row.ref,
+                active.ref,
+                active.path,
+            )
+        if active.id not in self.slots:
+            slot = load_slot(self.settings, Path(active.path), task, active.id, active.name)
+            self.slots[active.id] = slot
+            self.assigned[active.name] = slot
             with self.sessions() as s:
-                row = s.get(PolicyVersion, version)
-                row.threshold, row.status = self.slots[version].threshold, "active"
+                s.get(PolicyVersion, active.id).threshold = slot.threshold
                 s.commit()
-        return self.slots[version]
+        return self.slots[active.id]
 
     # -- workers and episodes -------------------------------------------------------------------------------
     def _spawn(self, robot: Robot) -> None:
@@ -113,8 +132,8 @@ class Fleet:
         self._new_episode(robot)
 
     def _new_episode(self, robot: Robot) -> None:
-        """The next episode, on the policy version assigned to the robot's task (hot swap)."""
-        target = self.assigned.get(robot.task)
+        """The next episode, on the policy version assigned to the robot's lineage (hot swap)."""
+        target = self.assigned.get(robot.slot.lineage)
         if target is not None and target is not robot.slot:
             robot.slot.controller.remove(robot.id)
             robot.slot = target
@@ -171,12 +190,23 @@ class Fleet:
             self._spawn(robot)
         self._thread = threading.Thread(target=self._loop, name="fleet-control", daemon=True)
         self._thread.start()
+        self._watcher = threading.Thread(target=self._watch_registry, name="fleet-registry", daemon=True)
+        self._watcher.start()
+
+    def _watch_registry(self) -> None:
+        while not self._stop.wait(self.settings.policy_poll_seconds):
+            try:
+                self.sync_policies()
+            except Exception:  # noqa: BLE001 - a database hiccup: the next poll tries again
+                log.exception("policy registry poll failed")
 
     def stop(self) -> None:
         """Finishes the current tick, closes open segments and episodes, stops the workers."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=30)
+        if self._watcher is not None:
+            self._watcher.join(timeout=30)
         with self.lock:
             for robot in self.robots.values():
                 self._interrupt(robot, "stopped", "service-stopped")
@@ -506,42 +536,62 @@ class Fleet:
             raise ServiceError(
                 422, f"policy {key} expects {obs_dim}-dim observations, {task} gives {spec.obs_spec.dim}"
             )
-        with self.sessions() as s:
-            if parent is not None and s.get(PolicyVersion, parent) is None:
-                raise ServiceError(404, f"no policy version {parent}")
-            row = s.scalars(select(PolicyVersion).where(PolicyVersion.path == key)).one_or_none()
-            if row is None:
-                row = PolicyVersion(name=Path(key).name, path=key, task=task, status="candidate", parent_id=parent)
-                s.add(row)
-                s.commit()
-            return row.id
+        return registry.register(self.sessions, key, task, parent=parent, command=info.get("command")).id
 
-    def activate_policy(self, version: int) -> None:
-        """Serves policy ``version`` to the robots of its task: each moves at its next episode boundary.
-        The version is loaded outside the fleet lock; the previously active version of the task is
-        retired."""
+    def served_lineages(self) -> set[str]:
+        with self.lock:
+            return {r.slot.lineage for r in self.robots.values()} | set(self.assigned)
+
+    def sync_policies(self) -> list[int]:
+        """Loads the registry's active version of every lineage the fleet serves, if it is not the one
+        assigned yet; returns the versions newly assigned. A version that cannot be loaded is logged
+        once and the fleet keeps its current one."""
+        changed = []
         with self._swap_lock:
-            with self.sessions() as s:
-                row = s.get(PolicyVersion, version)
-                if row is None:
-                    raise ServiceError(404, f"no policy version {version}")
-                path, task = Path(row.path), row.task
-            if not any(r.task == task for r in self.robots.values()):
-                raise ServiceError(409, f"no robot of the fleet runs task {task!r}")
-            slot = self.slots.get(version) or load_slot(self.settings, path, task, version)  # slow: no fleet lock
-            with self.lock:
-                self.slots[version] = slot
-                self.assigned[task] = slot
-            with self.sessions() as s:
-                for other in s.scalars(
-                    select(PolicyVersion).where(PolicyVersion.task == task, PolicyVersion.status == "active")
-                ):
-                    if other.id != version:
-                        other.status = "retired"
-                row = s.get(PolicyVersion, version)
-                row.status, row.threshold = "active", slot.threshold
-                s.commit()
-        log.info("policy version %d (%s) now serves %s from each robot's next episode", version, path, task)
+            active = registry.active_versions(self.sessions)
+            for lineage in sorted(self.served_lineages()):
+                row = active.get(lineage)
+                current = self.assigned.get(lineage)
+                if row is None or (current is not None and current.version == row.id) or row.id in self._unloadable:
+                    continue
+                try:
+                    slot = self._load(row)
+                except ServiceError as exc:
+                    self._unloadable[row.id] = exc.message
+                    log.error(
+                        "policy %s is active but cannot be served, keeping the current one: %s", row.ref, exc.message
+                    )
+                    continue
+                with self.lock:
+                    self.slots[row.id] = slot
+                    self.assigned[lineage] = slot
+                changed.append(row.id)
+                log.info(
+                    "policy %s (%s) now serves lineage %s from each robot's next episode", row.ref, row.path, lineage
+                )
+        return changed
+
+    def _load(self, row: PolicyVersion) -> PolicySlot:
+        """The slot of a version (slow: no fleet lock), its threshold recorded."""
+        slot = self.slots.get(row.id) or load_slot(self.settings, Path(row.path), row.task, row.id, row.name)
+        with self.sessions() as s:
+            s.get(PolicyVersion, row.id).threshold = slot.threshold
+            s.commit()
+        return slot
+
+    def activate_policy(self, version: int, reason: str | None = None) -> None:
+        """Promotes ``version`` in the registry and, when the fleet serves its lineage, loads it first (a
+        version that cannot be served is refused with 422 and the registry is left as it was); each
+        robot of the lineage moves to it at its next episode boundary."""
+        row = registry.by_id(self.sessions, version)
+        if row.name in self.served_lineages():
+            with self._swap_lock:
+                slot = self._load(row)
+                with self.lock:
+                    self.slots[row.id] = slot
+            self._unloadable.pop(row.id, None)
+        registry.promote(self.sessions, version, reason)
+        self.sync_policies()
 
     # -- metrics --------------------------------------------------------------------------------------
     def metrics(self) -> dict:

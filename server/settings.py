@@ -42,6 +42,43 @@ class RobotGroup(BaseModel):
         return v
 
 
+class FinetuneSettings(BaseModel):
+    """The fine-tuning job inside ``hitl serve`` (``[finetune]`` in the TOML file)."""
+
+    model_config = {"extra": "forbid"}
+
+    schedule: str | None = Field(
+        "0 3 * * *",
+        description="cron expression (server local time) for the nightly job; empty or null: never scheduled",
+    )
+    niceness: int = Field(19, ge=0, le=19, description="CPU priority of the job's process below the fleet (os.nice)")
+    promote: bool = Field(True, description="promote a version that passes the gate (false: leave it a candidate)")
+    eval_episodes: int = Field(20, ge=1, le=1000, description="seeded autonomous episodes per evaluation task")
+    eval_tasks: dict[str, list[str]] = Field(
+        default_factory=dict,
+        description="lineage -> the target tasks the gate compares on (default: the tasks its takeovers came from)",
+    )
+    threads: int = Field(1, ge=1, le=256, description="torch threads of the job")
+
+    @field_validator("schedule")
+    @classmethod
+    def _cron(cls, v: str | None) -> str | None:
+        if v is None or not v.strip():
+            return None
+        from server.scheduler import parse_cron
+
+        parse_cron(v)
+        return v.strip()
+
+    @field_validator("eval_tasks")
+    @classmethod
+    def _tasks(cls, v: dict[str, list[str]]) -> dict[str, list[str]]:
+        for tasks in v.values():
+            for task in tasks:
+                RobotGroup._known_task(task)
+        return v
+
+
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="HITL_", extra="forbid", populate_by_name=True)
 
@@ -98,6 +135,10 @@ class Settings(BaseSettings):
     worker_niceness: int = Field(
         10, ge=0, le=19, description="CPU priority of the physics workers below the control loop (os.nice)"
     )
+    policy_poll_seconds: float = Field(
+        2.0, gt=0, le=3600, description="how often the fleet checks the registry for a newly active policy version"
+    )
+    finetune: FinetuneSettings = Field(default_factory=FinetuneSettings)
 
     @field_validator("signal")
     @classmethod

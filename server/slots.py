@@ -24,8 +24,9 @@ log = logging.getLogger("hitl.server")
 
 @dataclass
 class PolicySlot:
-    """version: the ``PolicyVersion`` row's id; threshold: the denoising metric's (what the console
-    draws U against); controller: the one control step of this version's robots."""
+    """version: the ``PolicyVersion`` row's id; lineage: its name (``server.registry``); threshold: the
+    denoising metric's (what the console draws U against); controller: the one control step of this
+    version's robots."""
 
     version: int
     path: Path
@@ -33,6 +34,7 @@ class PolicySlot:
     policy: DiffusionPolicy
     threshold: float
     controller: Controller
+    lineage: str = ""
 
     @property
     def asking(self) -> str:
@@ -52,7 +54,7 @@ def controller_config(settings: Settings) -> ControllerConfig:
     )
 
 
-def load_slot(settings: Settings, path: Path, task: str, version: int) -> PolicySlot:
+def load_slot(settings: Settings, path: Path, task: str, version: int, lineage: str = "") -> PolicySlot:
     """The policy folder ``path`` ready to serve ``task`` (ServiceError 422 naming what is wrong)."""
     try:
         policy, _ = load_policy(path)
@@ -73,7 +75,7 @@ def load_slot(settings: Settings, path: Path, task: str, version: int) -> Policy
             raise ServiceError(422, f"policy {path}: signal {name!r} is not ready: {exc}") from exc
     _warn_if_miscalibrated(path)
     controller = Controller(policy, signals, settings.signal, spec.action_space, controller_config(settings))
-    return PolicySlot(version, path, task, policy, float(signals["denoising"].threshold), controller)
+    return PolicySlot(version, path, task, policy, float(signals["denoising"].threshold), controller, lineage)
 
 
 def _warn_if_miscalibrated(path: Path) -> None:

@@ -211,17 +211,82 @@ class SegmentOut(BaseModel):
     ended_at: datetime | None
 
 
+PolicyName = Annotated[str, Field(min_length=1, max_length=256, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")]
+PolicyRefText = Annotated[
+    str,
+    Field(
+        min_length=1,
+        max_length=300,
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*(@(active|[1-9][0-9]{0,8}))?$",
+        description="NAME, NAME@active or NAME@VERSION",
+    ),
+]
+
+
 class PolicyOut(BaseModel):
+    """One version of a policy lineage (``ref`` = ``name@version``)."""
+
     model_config = ConfigDict(from_attributes=True)
     id: int
     name: str
+    version: int
+    ref: str
     path: str
     task: str
     threshold: float | None
     status: Literal["candidate", "active", "retired"]
+    status_reason: str | None = Field(None, description="why: the promotion gate's decision, a promote, a rollback")
     parent_id: int | None
     created_at: datetime
+    command: str | None = Field(None, description="the command that produced it")
+    manifest: dict = Field(default_factory=dict, description="pretraining episodes and takeover segments it used")
+    calibration: dict = Field(default_factory=dict, description="its threshold and calibration set")
+    evaluation: dict = Field(default_factory=dict, description="autonomous success per task (episodes, seed)")
     robots: list[int] = Field(default_factory=list, description="robots running this version now")
+
+
+class PromoteIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    ref: PolicyRefText = Field(..., description="NAME@VERSION")
+    reason: str | None = Field(None, max_length=512)
+
+
+class RollbackIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: PolicyName
+    reason: str | None = Field(None, max_length=512)
+
+
+class FinetuneJobIn(BaseModel):
+    """Starts ``hitl finetune`` in a separate, low-priority process."""
+
+    model_config = ConfigDict(extra="forbid")
+    policy: PolicyRefText
+    since: str | None = Field(
+        None, max_length=16, pattern=r"^\s*\d+(\.\d+)?\s*[smhdw]\s*$", description="e.g. 24h, 7d: only recent segments"
+    )
+
+
+class FinetuneJobOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+    id: int
+    lineage: str
+    status: Literal["queued", "running", "succeeded", "failed", "interrupted"]
+    stage: str | None
+    progress: float
+    source: str
+    trigger: str
+    parent_id: int | None
+    version_id: int | None = Field(None, description="the version it produced")
+    since: datetime | None
+    data: dict = Field(default_factory=dict, description="counts, tasks, skipped segments with their reason")
+    evaluation: dict = Field(default_factory=dict, description="parent and candidate success per task")
+    gate: dict = Field(default_factory=dict, description="the promotion gate's decision and its evidence")
+    error: str | None
+    command: str | None
+    created_at: datetime
+    started_at: datetime | None
+    ended_at: datetime | None
 
 
 class PolicyIn(BaseModel):

@@ -8,7 +8,7 @@ import httpx
 import pytest
 from fastapi.routing import APIRoute
 
-from server.api import assistance, records, robots, system
+from server.api import assistance, finetune, policies, records, robots, system
 from server.api.schemas import ID_MAX, ErrorOut
 from server.app import API_PREFIX
 from server.auth import create_token
@@ -32,8 +32,11 @@ RAISES = {
     ("POST", "/api/v1/robots/{robot_id}/release"): {409},
     ("POST", "/api/v1/robots/{robot_id}/command"): {409, 429},
     ("GET", "/api/v1/segments/{segment_id}/mcap"): {409, 410},
+    ("GET", "/api/v1/policies"): {404},  # an unknown lineage name
     ("POST", "/api/v1/policies"): {404},  # an unknown parent_id
-    ("POST", "/api/v1/policies/{version}/activate"): {409},
+    ("POST", "/api/v1/policies/promote"): {404},
+    ("POST", "/api/v1/policies/rollback"): {404, 409},  # no parent to roll back to
+    ("POST", "/api/v1/finetune-jobs"): {404, 409},  # an unknown policy; a job already running
 }
 
 
@@ -144,7 +147,9 @@ def expected_errors(route: APIRoute, method: str, path: str) -> set[int]:
 
 def _routes():
     """(method, path as served, route) of every HTTP route of the routers ``create_app`` includes."""
-    mounted = [(system.router, "")] + [(r, API_PREFIX) for r in (robots.router, assistance.router, records.router)]
+    mounted = [(system.router, "")] + [
+        (r, API_PREFIX) for r in (robots.router, assistance.router, records.router, policies.router, finetune.router)
+    ]
     for router, prefix in [*mounted, (system.api, API_PREFIX)]:
         for route in router.routes:
             if isinstance(route, APIRoute) and route.include_in_schema:

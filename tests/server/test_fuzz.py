@@ -27,7 +27,7 @@ from server.settings import RobotGroup, Settings
 from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
 
 EXAMPLES = 12  # per operation and generation mode: about 500 requests in all
-KNOWN = {"robot_id": 0, "segment_id": 1, "version": 1}  # the fleet's robot, its first segment and policy
+KNOWN = {"robot_id": 0, "segment_id": 1, "version": 1, "job_id": 1}  # robot, first segment, policy, job
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
 
 

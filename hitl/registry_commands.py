@@ -1,0 +1,225 @@
+"""``hitl policy list | promote | rollback`` and ``hitl finetune``: the registry and the fine-tuning job.
+
+Both work on the service's metadata store and data folder (``--config``, ``HITL_DATA_DIR``,
+``DATABASE_URL``), with or without the service running: a running fleet follows the registry and
+hot-swaps at each robot's next episode.
+
+``hitl finetune`` exit codes: 0 done (or nothing to do), 1 a job failed, 2 bad input (nothing
+changed), 3 another job holds the lease (try later).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import signal
+import sys
+from pathlib import Path
+
+EXIT_FAILED, EXIT_BAD_INPUT, EXIT_BUSY = 1, 2, 3
+
+
+def _store(args: argparse.Namespace):
+    """(settings, sessions) with the migrations applied."""
+    from server.db import make_engine, migrate, session_factory
+    from server.settings import Settings
+
+    overrides = {}
+    if getattr(args, "data_dir", None):
+        overrides["data_dir"] = args.data_dir
+    if getattr(args, "database_url", None):
+        overrides["database_url"] = args.database_url
+    settings = Settings.load(args.config, **overrides)
+    migrate(settings.db_url)
+    return settings, session_factory(make_engine(settings.db_url))
+
+
+def _fail(command: str, exc: Exception) -> int:
+    print(f"hitl {command}: error: {getattr(exc, 'message', exc)}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def _version_doc(row) -> dict:
+    tasks = (row.evaluation or {}).get("tasks", {})
+    return {
+        "ref": row.ref,
+        "id": row.id,
+        "status": row.status,
+        "task": row.task,
+        "threshold": row.threshold,
+        "parent_id": row.parent_id,
+        "created_at": row.created_at.isoformat(timespec="seconds"),
+        "path": row.path,
+        "evaluation": {t: d.get("success_rate") for t, d in tasks.items()},
+        "reason": row.status_reason,
+        "command": row.command,
+    }
+
+
+def _cmd_policy_list(args: argparse.Namespace) -> int:
+    from server import registry
+    from server.errors import ServiceError
+
+    _, sessions = _store(args)
+    try:
+        rows = registry.versions(sessions, args.name)
+    except ServiceError as exc:
+        return _fail("policy list", exc)
+    docs = [_version_doc(r) for r in rows]
+    if args.json:
+        print(json.dumps(docs, indent=2))
+        return 0
+    if not docs:
+        print("no policy version is registered (hitl serve registers the configured ones)")
+    for d in docs:
+        ev = ", ".join(f"{t} {v:.2f}" for t, v in d["evaluation"].items()) or "not evaluated"
+        thr = f"{d['threshold']:.4g}" if d["threshold"] is not None else "-"
+        print(f"{d['ref']:<24} {d['status']:<9} task {d['task']:<12} threshold {thr:<9} {d['created_at']}  {ev}")
+        if d["reason"]:
+            print(f"{'':<24} {d['reason']}")
+    return 0
+
+
+def _cmd_policy_promote(args: argparse.Namespace) -> int:
+    from server import registry
+    from server.errors import ServiceError
+
+    _, sessions = _store(args)
+    try:
+        ref = registry.PolicyRef.parse(args.ref)
+        if ref.version is None:
+            raise ServiceError(422, f"promote which version? give NAME@VERSION, e.g. {ref.name}@2")
+        row = registry.promote(sessions, ref, args.reason or "promoted with hitl policy promote")
+    except ServiceError as exc:
+        return _fail("policy promote", exc)
+    print(json.dumps({"active": row.ref, "path": row.path}))
+    return 0
+
+
+def _cmd_policy_rollback(args: argparse.Namespace) -> int:
+    from server import registry
+    from server.errors import ServiceError
+
+    _, sessions = _store(args)
+    try:
+        row = registry.rollback(sessions, registry.PolicyRef.parse(args.name).name, args.reason)
+    except ServiceError as exc:
+        return _fail("policy rollback", exc)
+    print(json.dumps({"active": row.ref, "path": row.path}))
+    return 0
+
+
+def _finetune_config(args: argparse.Namespace, settings):
+    from policy.finetune import FinetuneConfig
+
+    given = {
+        k: getattr(args, k)
+        for k in ("ratio", "steps", "batch_size", "lr", "seed", "eval_seed", "tolerance", "min_gain")
+        if getattr(args, k) is not None
+    }
+    return FinetuneConfig(eval_episodes=args.eval_episodes or settings.finetune.eval_episodes, **given)
+
+
+def _interrupted(signum, frame) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _cmd_finetune(args: argparse.Namespace) -> int:
+    import logging
+
+    import torch
+
+    from server.errors import ServiceError
+    from server.finetune_job import FinetuneRunner, JobBusy, JobRequest, parse_since
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        settings, sessions = _store(args)
+        torch.set_num_threads(args.threads or settings.finetune.threads)
+        request = JobRequest(
+            policy=args.policy,
+            since=parse_since(args.since) if args.since else None,
+            source=args.source,
+            episodes=args.episodes,
+            pretrain_data=args.pretrain_data,
+            eval_tasks=tuple(args.eval_tasks) if args.eval_tasks else None,
+            promote=settings.finetune.promote if args.promote is None else args.promote,
+            config=_finetune_config(args, settings),
+            trigger=args.trigger,
+            command="hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+            job_id=args.job,
+        )
+        runner = FinetuneRunner(
+            sessions,
+            settings.data_dir,
+            settings.finetune.eval_tasks,
+            progress=not args.quiet,
+            report=lambda line: print(line, flush=True),
+        )
+        # a SIGTERM (systemd, Kubernetes, the service stopping) ends the job as "interrupted", resumable
+        signal.signal(signal.SIGTERM, _interrupted)
+        results = runner.run(request)
+    except JobBusy as exc:
+        print(f"hitl finetune: {exc}", file=sys.stderr)
+        return EXIT_BUSY
+    except (ServiceError, ValueError, FileNotFoundError, KeyError) as exc:
+        return _fail("finetune", exc)
+    return EXIT_FAILED if any(r["status"] != "succeeded" for r in results) else 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    def store_args(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--config", type=Path, default=None, help="the service's TOML settings (data_dir, database)")
+        p.add_argument("--data-dir", type=Path, default=None, help="the service's data folder (default: settings)")
+        p.add_argument("--database-url", default=None, help="default: settings, DATABASE_URL or data_dir/hitl.db")
+
+    p = sub.add_parser("policy", help="the policy registry: list, promote, roll back")
+    verbs = p.add_subparsers(dest="verb", required=True)
+    q = verbs.add_parser("list", help="every version with its status, threshold, evaluation and reason")
+    q.add_argument("name", nargs="?", default=None, help="one lineage only")
+    q.add_argument("--json", action="store_true")
+    store_args(q)
+    q.set_defaults(func=_cmd_policy_list)
+    q = verbs.add_parser("promote", help="make NAME@VERSION active (a running fleet swaps at each next episode)")
+    q.add_argument("ref", help="NAME@VERSION")
+    q.add_argument("--reason", default=None)
+    store_args(q)
+    q.set_defaults(func=_cmd_policy_promote)
+    q = verbs.add_parser("rollback", help="retire NAME's active version and make its parent active again")
+    q.add_argument("name")
+    q.add_argument("--reason", default=None)
+    store_args(q)
+    q.set_defaults(func=_cmd_policy_rollback)
+
+    p = sub.add_parser(
+        "finetune",
+        help="fine-tune on takeover segments, recalibrate, evaluate, gate (exit 3: another job is running)",
+    )
+    p.add_argument("--policy", default=None, help="NAME[@active|@VERSION]; default: every lineage with new takeovers")
+    p.add_argument("--since", default=None, help="only segments that ended within this window: 30m, 24h, 7d")
+    p.add_argument("--source", choices=["takeovers", "full-episodes"], default="takeovers")
+    p.add_argument("--episodes", type=Path, default=None, help="--source full-episodes: a folder of episode MCAPs")
+    p.add_argument("--pretrain-data", type=Path, default=None, help="default: the folder in the policy's config.json")
+    p.add_argument("--eval-tasks", nargs="+", default=None, help="the gate's target tasks (default: the takeovers')")
+    p.add_argument("--eval-episodes", type=int, default=None, help="per task (default: settings, 20)")
+    p.add_argument("--eval-seed", type=int, default=None)
+    p.add_argument("--ratio", type=float, default=None, help="takeover share of each mini-batch (default 0.5)")
+    p.add_argument("--steps", type=int, default=None, help="fixed step count (default: scales with the data)")
+    p.add_argument("--batch-size", type=int, default=None)
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--tolerance", type=float, default=None, help="allowed drop on the training task (default 0.05)")
+    p.add_argument("--min-gain", type=float, default=None, help="required rise on the target tasks (default 0)")
+    p.add_argument(
+        "--promote",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="promote a version that passes the gate (default: settings, on)",
+    )
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--trigger", default="cli", help=argparse.SUPPRESS)
+    p.add_argument("--job", type=int, default=None, help=argparse.SUPPRESS)  # a queued job row (the API's)
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    store_args(p)
+    p.set_defaults(func=_cmd_finetune)

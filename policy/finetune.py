@@ -1,0 +1,262 @@
+"""Fine-tuning a policy version on takeover data: the training, the recalibration, the evaluation and
+the promotion gate. No database here: ``server.finetune_job`` runs these steps as a job and records
+them in the registry.
+
+Training starts from the parent's weights and keeps the parent's normalizers (its absolute action
+space), mixes every mini-batch ``ratio`` takeover / ``1 - ratio`` pretraining (``policy.mixing``)
+and runs a number of steps that grows with the takeover data (``FinetuneConfig.steps_for``).
+Evaluation rolls the policy out autonomously through the one ``Controller`` (``rollout_policy``) on
+seeded episodes of the lineage's tasks.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from policy.diffusion_policy import DiffusionPolicy
+from policy.mixing import MixedSampler
+from policy.train import TrainConfig, TrainState, train_policy
+from storage import keys
+from storage.dataset import DatasetConfig, load_dataset
+
+
+@dataclass(frozen=True)
+class FinetuneConfig:
+    """ratio: takeover share of each mini-batch; steps: ``passes`` expected visits of each takeover
+    sample (``passes * N / (ratio * batch_size)``) clipped to [min_steps, max_steps], or ``steps`` when
+    given; tolerance: how much training-task success may drop; min_gain: how much the target tasks'
+    mean success must rise (strictly more than this)."""
+
+    ratio: float = 0.5
+    batch_size: int = 64
+    lr: float = 1e-4
+    warmup_steps: int = 20
+    passes: float = 60.0
+    min_steps: int = 300
+    max_steps: int = 6000
+    steps: int | None = None
+    seed: int = 0
+    checkpoint_every: int = 100
+    quantile: float = 0.95
+    eval_episodes: int = 20
+    eval_seed: int = 50_000
+    tolerance: float = 0.05
+    min_gain: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.ratio <= 1:
+            raise ValueError(f"ratio must be in (0, 1], got {self.ratio!r}")
+        for name in ("batch_size", "min_steps", "max_steps", "checkpoint_every", "eval_episodes"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if self.steps is not None and not (isinstance(self.steps, int) and self.steps >= 1):
+            raise ValueError(f"steps must be an integer >= 1, got {self.steps!r}")
+        if self.min_steps > self.max_steps:
+            raise ValueError(f"min_steps {self.min_steps} > max_steps {self.max_steps}")
+        if not (self.passes > 0 and math.isfinite(self.passes)):
+            raise ValueError(f"passes must be a positive number, got {self.passes!r}")
+        if not 0 <= self.tolerance < 1:
+            raise ValueError(f"tolerance must be in [0, 1), got {self.tolerance!r}")
+        if not 0 < self.quantile < 1:
+            raise ValueError(f"quantile must be in (0, 1), got {self.quantile!r}")
+
+    def steps_for(self, takeover_samples: int) -> int:
+        if self.steps is not None:
+            return self.steps
+        wanted = math.ceil(self.passes * takeover_samples / (self.ratio * self.batch_size))
+        return int(min(self.max_steps, max(self.min_steps, wanted)))
+
+    def train_config(self, takeover_samples: int) -> TrainConfig:
+        steps = self.steps_for(takeover_samples)
+        return TrainConfig(
+            steps=steps,
+            batch_size=self.batch_size,
+            lr=self.lr,
+            warmup_steps=min(self.warmup_steps, steps - 1),
+            seed=self.seed,
+            val_every=max(steps, 1),
+        )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class FinetuneDataError(ValueError):
+    """The data for a fine-tuning run is missing or unusable; the message says what and where."""
+
+
+def pretraining_split(policy: DiffusionPolicy, info: dict, folder: str | Path) -> tuple[dict, dict, list[str]]:
+    """(train arrays, validation arrays, the training episodes' names) of the pretraining set, split
+    exactly as the policy's config.json records it."""
+    folder = Path(folder)
+    split = info.get("dataset", {})
+    train_names, val_names = split.get("train_episodes") or [], split.get("val_episodes") or []
+    if not train_names:
+        raise FinetuneDataError("the policy's config.json lists no training episodes: which data pretrained it?")
+    if not folder.is_dir():
+        raise FinetuneDataError(
+            f"pretraining data {folder} not found (named in the policy's config.json): record it again with the "
+            "command in that folder's README or pass --pretrain-data"
+        )
+    cfg = policy.config
+    ds = load_dataset(folder, DatasetConfig(obs_horizon=cfg.obs_horizon, action_horizon=cfg.action_horizon))
+    index = {n: i for i, n in enumerate(ds.names)}
+    missing = [n for n in [*train_names, *val_names] if n not in index]
+    if missing:
+        raise FinetuneDataError(
+            f"{len(missing)} of the policy's pretraining episodes are not in {folder} (e.g. {missing[0]}): "
+            "is this the folder it was trained from?"
+        )
+    if ds.obs.shape[1] != cfg.obs_dim:
+        raise FinetuneDataError(f"{folder} holds {ds.obs.shape[1]}-dim observations, the policy takes {cfg.obs_dim}")
+    train_ids = np.array([index[n] for n in train_names], np.int64)
+    val_ids = np.array([index[n] for n in val_names], np.int64)
+    train = dict(zip((keys.OBS, keys.ACTION), ds.windows(ds.sample_index(train_ids)), strict=True))
+    val = dict(zip((keys.OBS, keys.ACTION), ds.windows(ds.sample_index(val_ids)), strict=True))
+    return train, val, list(train_names)
+
+
+def finetune_policy(
+    parent: DiffusionPolicy,
+    takeover: dict[str, np.ndarray],
+    pretrain: dict[str, np.ndarray],
+    cfg: FinetuneConfig,
+    work_dir: str | Path | None = None,
+    progress: bool = True,
+    on_checkpoint: Callable[[TrainState], None] | None = None,
+) -> tuple[DiffusionPolicy, dict]:
+    """Trains a copy of ``parent`` (its weights and normalizers) on ``takeover`` mixed with ``pretrain``
+    ({OBS: (M, H, obs_dim), ACTION: (M, C, 10)}, absolute actions). With ``work_dir``, a training state is
+    saved there every ``checkpoint_every`` steps and an existing one is resumed. Returns (EMA policy,
+    history)."""
+    n_take = len(takeover[keys.OBS])
+    if n_take == 0:
+        raise FinetuneDataError("no takeover samples to fine-tune on")
+    n_pre = len(pretrain[keys.OBS]) if cfg.ratio < 1 else 0
+    data = {k: np.concatenate([takeover[k], pretrain[k][: n_pre or 0]]) for k in (keys.OBS, keys.ACTION)}
+    sampler = MixedSampler(n_take, n_pre, cfg.ratio)
+    policy = copy.deepcopy(parent)
+    tcfg = cfg.train_config(n_take)
+    resume = TrainState.load(work_dir) if work_dir is not None and TrainState.exists(work_dir) else None
+
+    def checkpoint(state: TrainState) -> None:
+        if work_dir is not None:
+            state.save(work_dir)
+        if on_checkpoint is not None:
+            on_checkpoint(state)
+
+    ema, history = train_policy(
+        policy,
+        data,
+        None,
+        tcfg,
+        progress=progress,
+        sampler=sampler,
+        resume=resume,
+        checkpoint=checkpoint,
+        checkpoint_every=cfg.checkpoint_every,
+    )
+    history |= {
+        "steps": tcfg.steps,
+        "takeover_samples": n_take,
+        "pretraining_samples": n_pre,
+        "ratio": cfg.ratio,
+        "resumed_from_step": resume.step if resume is not None else None,
+    }
+    return ema, history
+
+
+@dataclass(frozen=True)
+class TaskResult:
+    task: str
+    episodes: int
+    successes: int
+    seed: int
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / self.episodes if self.episodes else 0.0
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "success_rate": self.success_rate}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TaskResult:
+        return cls(str(d["task"]), int(d["episodes"]), int(d["successes"]), int(d["seed"]))
+
+
+def evaluate(
+    policy: DiffusionPolicy, tasks: list[str], episodes: int, seed: int, progress: bool = True
+) -> dict[str, TaskResult]:
+    """Autonomous success per task on seeds ``seed .. seed + episodes - 1``, through the controller."""
+    from policy.evaluate import rollout_policy
+
+    out = {}
+    seeds = list(range(seed, seed + episodes))
+    for task in tasks:
+        eps, _ = rollout_policy(policy, task, seeds, n_envs=min(4, episodes), progress=progress)
+        out[task] = TaskResult(task, episodes, sum(bool(e.success) for e in eps), seed)
+    return out
+
+
+@dataclass(frozen=True)
+class GateDecision:
+    """promote: whether the candidate passed; reason: one line; evidence: the numbers it compared."""
+
+    promote: bool
+    reason: str
+    evidence: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def gate(
+    parent: dict[str, TaskResult],
+    child: dict[str, TaskResult],
+    train_task: str,
+    target_tasks: list[str],
+    tolerance: float,
+    min_gain: float = 0.0,
+) -> GateDecision:
+    """Promote only if the child is not worse on ``train_task`` than the parent by more than
+    ``tolerance`` and its mean success over ``target_tasks`` is higher than the parent's by more than
+    ``min_gain``. Both must have been evaluated on the same tasks, episodes and seeds."""
+    for task in {train_task, *target_tasks}:
+        if task not in parent or task not in child:
+            raise ValueError(f"task {task!r} was not evaluated for both versions")
+        p, c = parent[task], child[task]
+        if (p.episodes, p.seed) != (c.episodes, c.seed):
+            raise ValueError(f"{task}: the versions were evaluated on different episodes ({p} vs {c})")
+    base, new = parent[train_task].success_rate, child[train_task].success_rate
+    target_base = float(np.mean([parent[t].success_rate for t in target_tasks]))
+    target_new = float(np.mean([child[t].success_rate for t in target_tasks]))
+    evidence = {
+        "train_task": train_task,
+        "target_tasks": list(target_tasks),
+        "train_success": {"parent": base, "candidate": new},
+        "target_success": {"parent": target_base, "candidate": target_new},
+        "per_task": {t: {"parent": parent[t].to_dict(), "candidate": child[t].to_dict()} for t in parent},
+        "tolerance": tolerance,
+        "min_gain": min_gain,
+    }
+    if new < base - tolerance - 1e-12:
+        why = f"worse on {train_task}: {new:.2f} against {base:.2f} (tolerance {tolerance:.2f})"
+        return GateDecision(False, why, evidence)
+    if not target_new > target_base + min_gain:
+        why = f"not better on {', '.join(target_tasks)}: {target_new:.2f} against {target_base:.2f}" + (
+            f" (needs more than +{min_gain:.2f})" if min_gain else ""
+        )
+        return GateDecision(False, why, evidence)
+    why = (
+        f"{', '.join(target_tasks)} {target_base:.2f} -> {target_new:.2f}; "
+        f"{train_task} {base:.2f} -> {new:.2f} (tolerance {tolerance:.2f})"
+    )
+    return GateDecision(True, why, evidence)

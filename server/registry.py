@@ -1,0 +1,192 @@
+"""The policy registry: versions of each policy lineage in the database, their files on disk.
+
+A lineage is a name (``lift-cube``); its versions are numbered 1, 2, ... and addressed as
+``NAME@VERSION``, ``NAME@active`` or just ``NAME`` (its active version). At most one version of a
+lineage is ``active``; ``promote`` makes one active and retires the one it replaces; ``rollback``
+returns to the active version's parent. The registry is the source of truth: a running fleet follows
+it (``Fleet.sync_policies``), so ``hitl policy promote`` from a shell and the admin API hot-swap the
+same way, at each robot's next episode.
+
+Every function raises ``ServiceError`` (404 unknown name or version, 409 a state that does not
+allow it, 422 a version whose files are unusable) and changes nothing when it does.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from policy.checkpoint import CheckpointError, read_info
+from server.db import FinetuneJob, PolicyVersion
+from server.errors import ServiceError
+
+_REF = re.compile(r"^(?P<name>[A-Za-z0-9][A-Za-z0-9._-]{0,255})(?:@(?P<sel>active|[1-9][0-9]{0,8}))?$")
+
+
+@dataclass(frozen=True)
+class PolicyRef:
+    """name: the lineage; version: a number, or None for the active version."""
+
+    name: str
+    version: int | None = None
+
+    @classmethod
+    def parse(cls, text: str) -> PolicyRef:
+        m = _REF.match(text.strip()) if isinstance(text, str) else None
+        if m is None:
+            raise ServiceError(422, f"bad policy reference {text!r}: expected NAME, NAME@active or NAME@VERSION")
+        sel = m["sel"]
+        return cls(m["name"], None if sel in (None, "active") else int(sel))
+
+    def __str__(self) -> str:
+        return f"{self.name}@{'active' if self.version is None else self.version}"
+
+
+def _names(s: Session) -> list[str]:
+    return list(s.scalars(select(PolicyVersion.name).distinct().order_by(PolicyVersion.name)))
+
+
+def find(s: Session, ref: PolicyRef) -> PolicyVersion:
+    """The version ``ref`` names, inside session ``s`` (ServiceError 404 otherwise)."""
+    q = select(PolicyVersion).where(PolicyVersion.name == ref.name)
+    if ref.version is None:
+        row = s.scalars(q.where(PolicyVersion.status == "active")).first()
+        if row is None:
+            if s.scalars(q).first() is None:
+                raise ServiceError(404, _unknown(s, ref.name))
+            raise ServiceError(404, f"policy {ref.name} has no active version: promote one")
+        return row
+    row = s.scalars(q.where(PolicyVersion.version == ref.version)).one_or_none()
+    if row is None:
+        raise ServiceError(404, _unknown(s, ref.name) if s.scalars(q).first() is None else f"no policy {ref}")
+    return row
+
+
+def _unknown(s: Session, name: str) -> str:
+    known = _names(s)
+    return f"no policy named {name!r}" + (f"; registered: {', '.join(known)}" if known else "; none is registered")
+
+
+def resolve(sessions: sessionmaker, ref: str | PolicyRef) -> PolicyVersion:
+    ref = PolicyRef.parse(ref) if isinstance(ref, str) else ref
+    with sessions() as s:
+        return find(s, ref)
+
+
+def by_id(sessions: sessionmaker, version_id: int) -> PolicyVersion:
+    with sessions() as s:
+        row = s.get(PolicyVersion, version_id)
+        if row is None:
+            raise ServiceError(404, f"no policy version {version_id}")
+        return row
+
+
+def versions(sessions: sessionmaker, name: str | None = None) -> list[PolicyVersion]:
+    q = select(PolicyVersion).order_by(PolicyVersion.name, PolicyVersion.version)
+    with sessions() as s:
+        if name is not None:
+            rows = list(s.scalars(q.where(PolicyVersion.name == name)))
+            if not rows:
+                raise ServiceError(404, _unknown(s, name))
+            return rows
+        return list(s.scalars(q))
+
+
+def lineage_ids(sessions: sessionmaker, name: str) -> list[int]:
+    with sessions() as s:
+        return list(s.scalars(select(PolicyVersion.id).where(PolicyVersion.name == name)))
+
+
+def active_versions(sessions: sessionmaker) -> dict[str, PolicyVersion]:
+    """lineage -> its active version."""
+    with sessions() as s:
+        return {r.name: r for r in s.scalars(select(PolicyVersion).where(PolicyVersion.status == "active"))}
+
+
+def _check_files(row: PolicyVersion) -> None:
+    try:
+        read_info(row.path)
+    except CheckpointError as exc:
+        raise ServiceError(422, f"policy {row.ref}: {exc}") from exc
+    if not (Path(row.path) / "model.safetensors").is_file():
+        raise ServiceError(422, f"policy {row.ref}: {row.path}/model.safetensors not found")
+
+
+def register(
+    sessions: sessionmaker,
+    path: str | Path,
+    task: str,
+    name: str | None = None,
+    parent: int | None = None,
+    status: str = "candidate",
+    **fields,
+) -> PolicyVersion:
+    """A new version of lineage ``name`` (default: the parent's lineage, else the folder's name), numbered
+    one above its lineage's last; the same folder again returns the version already registered."""
+    key = str(Path(path).resolve())
+    with sessions() as s:
+        parent_row = s.get(PolicyVersion, parent) if parent is not None else None
+        if parent is not None and parent_row is None:
+            raise ServiceError(404, f"no policy version {parent}")
+        row = s.scalars(select(PolicyVersion).where(PolicyVersion.path == key)).one_or_none()
+        if row is not None:
+            return row
+        lineage = name or (parent_row.name if parent_row is not None else Path(key).name)
+        PolicyRef.parse(lineage)  # a name NAME@VERSION can address
+        last = s.scalar(select(func.max(PolicyVersion.version)).where(PolicyVersion.name == lineage)) or 0
+        row = PolicyVersion(
+            name=lineage, version=last + 1, path=key, task=task, status=status, parent_id=parent, **fields
+        )
+        s.add(row)
+        s.commit()
+        return row
+
+
+def promote(sessions: sessionmaker, ref: str | PolicyRef | int, reason: str | None = None) -> PolicyVersion:
+    """Makes the version active and retires the lineage's previously active one."""
+    with sessions() as s:
+        row = s.get(PolicyVersion, ref) if isinstance(ref, int) else find(s, _ref(ref))
+        if row is None:
+            raise ServiceError(404, f"no policy version {ref}")
+        _check_files(row)
+        for other in s.scalars(
+            select(PolicyVersion).where(PolicyVersion.name == row.name, PolicyVersion.status == "active")
+        ):
+            if other.id != row.id:
+                other.status, other.status_reason = "retired", f"replaced by {row.ref}"
+        row.status = "active"
+        row.status_reason = reason or "promoted"
+        s.commit()
+        return row
+
+
+def rollback(sessions: sessionmaker, name: str, reason: str | None = None) -> PolicyVersion:
+    """Retires the lineage's active version and makes its parent active again; returns the parent."""
+    with sessions() as s:
+        active = find(s, PolicyRef(name))
+        if active.parent_id is None:
+            raise ServiceError(409, f"policy {active.ref} has no parent version to roll back to")
+        parent = s.get(PolicyVersion, active.parent_id)
+        if parent.name != name:
+            raise ServiceError(409, f"the parent of {active.ref} is {parent.ref}, another lineage: promote it instead")
+        _check_files(parent)
+        active.status, active.status_reason = "retired", reason or f"rolled back to {parent.ref}"
+        parent.status, parent.status_reason = "active", reason or f"rollback from {active.ref}"
+        s.commit()
+        return parent
+
+
+def _ref(ref: str | PolicyRef) -> PolicyRef:
+    return PolicyRef.parse(ref) if isinstance(ref, str) else ref
+
+
+def last_jobs(sessions: sessionmaker) -> dict[str, FinetuneJob]:
+    """lineage -> its most recent fine-tuning job."""
+    with sessions() as s:
+        newest = select(FinetuneJob.lineage, func.max(FinetuneJob.id).label("id")).group_by(FinetuneJob.lineage)
+        ids = [r.id for r in s.execute(newest)]
+        return {j.lineage: j for j in s.scalars(select(FinetuneJob).where(FinetuneJob.id.in_(ids)))} if ids else {}

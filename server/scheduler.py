@@ -1,0 +1,154 @@
+"""The nightly fine-tuning job inside ``hitl serve``: a cron schedule and the process it starts.
+
+``Scheduler`` evaluates a cron expression (croniter) on an injectable clock; a thread wakes at most
+every ``poll`` seconds and fires once per due time (a time missed while the service was down is not
+caught up, as with cron). ``JobLauncher`` starts ``hitl finetune`` as a separate process at low CPU
+priority (``os.nice``), so the job's training and evaluation never take the fleet's cores first;
+its output goes to ``<data_dir>/logs/``. The database lease decides whether a job actually runs: a
+launch while another job (from here, system cron or a Kubernetes CronJob) holds it exits with 3.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from datetime import datetime
+from pathlib import Path
+
+from croniter import croniter
+
+log = logging.getLogger("hitl.scheduler")
+
+
+def parse_cron(expr: str) -> str:
+    """The expression if it has cron's five fields (minute first; as system cron and Kubernetes take
+    them, so the same line works in all three) and croniter accepts it, else ValueError."""
+    if not isinstance(expr, str) or len(expr.split()) != 5 or not croniter.is_valid(expr.strip()):
+        raise ValueError(f"invalid cron expression {expr!r}: expected five fields, e.g. '0 3 * * *' (03:00 daily)")
+    return expr.strip()
+
+
+def local_now() -> datetime:
+    return datetime.now().astimezone()
+
+
+class Scheduler:
+    """Calls ``fire(due_time)`` at each time the cron expression names; ``tick(now)`` is the whole logic
+    (tests drive it with their own clock)."""
+
+    def __init__(
+        self,
+        expr: str,
+        fire: Callable[[datetime], None],
+        clock: Callable[[], datetime] = local_now,
+        poll: float = 30.0,
+    ) -> None:
+        self.expr = parse_cron(expr)
+        self.fire, self.clock, self.poll = fire, clock, poll
+        self.next_due = self._after(clock())
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _after(self, when: datetime) -> datetime:
+        return croniter(self.expr, when).get_next(datetime)
+
+    def tick(self, now: datetime | None = None) -> bool:
+        """Fires if the next due time has come; True if it fired."""
+        now = now or self.clock()
+        if now < self.next_due:
+            return False
+        due, self.next_due = self.next_due, self._after(now)
+        try:
+            self.fire(due)
+        except Exception:  # noqa: BLE001 - a failed launch must not stop later ones
+            log.exception("scheduled job at %s could not start", due.isoformat())
+        return True
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="finetune-scheduler", daemon=True)
+        self._thread.start()
+        log.info("fine-tuning scheduled by %r; next run %s", self.expr, self.next_due.isoformat(timespec="minutes"))
+
+    def _run(self) -> None:
+        while True:
+            wait = max(0.0, min(self.poll, (self.next_due - self.clock()).total_seconds()))
+            if self._stop.wait(wait):
+                return
+            self.tick()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+
+
+class JobLauncher:
+    """Starts ``hitl finetune`` processes for the service (schedule and API trigger), one at a time from
+    here; ``stop`` ends a running one with SIGTERM (it records itself interrupted and resumes later)."""
+
+    def __init__(self, data_dir: Path, database_url: str, niceness: int, promote: bool) -> None:
+        self.data_dir, self.database_url = Path(data_dir).resolve(), database_url
+        self.niceness, self.promote = niceness, promote
+        self.process: subprocess.Popen | None = None
+        self._lock = threading.Lock()
+
+    def running(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+    def launch(
+        self, trigger: str, policy: str | None = None, job_id: int | None = None, extra: list[str] | None = None
+    ) -> subprocess.Popen | None:
+        """The new process, or None when one started from here is still running."""
+        with self._lock:
+            if self.running():
+                log.warning("a fine-tuning job started by this service is still running: not starting another")
+                return None
+            cmd = [
+                sys.executable,
+                "-m",
+                "hitl.cli",
+                "finetune",
+                "--quiet",
+                "--trigger",
+                trigger,
+                "--data-dir",
+                str(self.data_dir),
+                "--database-url",
+                self.database_url,
+                "--promote" if self.promote else "--no-promote",
+            ]
+            if policy:
+                cmd += ["--policy", policy]
+            if job_id is not None:
+                cmd += ["--job", str(job_id)]
+            cmd += extra or []
+            logs = self.data_dir / "logs"
+            logs.mkdir(parents=True, exist_ok=True)
+            stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+            out = open(logs / f"finetune-{stamp}-{trigger}.log", "ab")  # noqa: SIM115 - the child owns it
+            niceness = self.niceness
+            self.process = subprocess.Popen(
+                cmd,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                preexec_fn=(lambda: os.nice(niceness)) if niceness else None,  # noqa: PLW1509
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )
+            out.close()
+            log.info("fine-tuning job started (%s), pid %d, log %s", trigger, self.process.pid, out.name)
+            return self.process
+
+    def stop(self, timeout: float = 30.0) -> None:
+        with self._lock:
+            if self.running():
+                self.process.terminate()
+                try:
+                    self.process.wait(timeout)
+                except subprocess.TimeoutExpired:
+                    self.process.kill()
+                    self.process.wait()

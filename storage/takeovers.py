@@ -1,0 +1,122 @@
+"""Takeover segments as fine-tuning data: (observation history, operator action chunk) pairs.
+
+The label is the absolute action the operator's command produced (``/takeover/step`` ``action``), in
+the policy's own absolute action space: the version being fine-tuned normalizes it with its own
+normalizer when it trains, whatever version served the segment (the segment's ``action_normalized``
+is the serving version's and is not used). Each segment is one contiguous sequence, windowed like a
+demonstration episode (``storage.dataset``): histories padded with the first observation, chunks
+with the last action.
+
+A segment that cannot be used (unreadable, truncated, empty, wrong dimensions, non-finite values) is
+skipped, and ``TakeoverSet.skipped`` names it with the reason: the caller reports it, nothing fails
+silently.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from storage import keys
+from storage.dataset import DatasetConfig, DemoDataset
+from storage.segments import SegmentReadError, read_segment
+
+ACTION_DIM = 10
+
+
+@dataclass
+class TakeoverSet:
+    """obs: (N, obs_dim) and actions: (N, 10) per step, segments concatenated (``episode_ends``);
+    used: the segment files used, in order; skipped: file -> why it was not used."""
+
+    obs: np.ndarray
+    actions: np.ndarray
+    ee_pose: np.ndarray
+    episode_ends: np.ndarray
+    used: list[str] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.obs)
+
+    def arrays(self, obs_horizon: int, action_horizon: int) -> dict[str, np.ndarray]:
+        """{OBS: (N, H, obs_dim), ACTION: (N, C, 10)}: one sample per takeover step."""
+        if not len(self):
+            return {
+                keys.OBS: np.zeros((0, obs_horizon, self.obs.shape[1]), np.float32),
+                keys.ACTION: np.zeros((0, action_horizon, ACTION_DIM), np.float32),
+            }
+        ds = DemoDataset(
+            folder=Path("."),
+            config=DatasetConfig(obs_horizon=obs_horizon, action_horizon=action_horizon, val_fraction=0.0, cache=False),
+            obs=self.obs,
+            actions=self.actions,
+            ee_pose=self.ee_pose,
+            episode_ends=self.episode_ends,
+            names=self.used,
+            meta=[{} for _ in self.used],
+            excluded={},
+        )
+        return ds.arrays("all")
+
+
+def _steps(path: Path, obs_dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    seg = read_segment(path)  # closed and recovered segments are complete files
+    if seg.end is None:
+        raise SegmentReadError(path, "no /takeover/end message: the segment is still open")
+    if not seg.steps:
+        raise SegmentReadError(path, "no steps")
+    try:
+        obs = np.array([s[keys.STEP_OBSERVATION] for s in seg.steps], dtype=np.float32)
+        act = np.array([s[keys.STEP_ACTION] for s in seg.steps], dtype=np.float32)
+        pose = np.array([list(s["position"]) + list(s["quaternion"]) for s in seg.steps], dtype=np.float32)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SegmentReadError(path, f"malformed step ({type(exc).__name__}: {exc})") from exc
+    if obs.ndim != 2 or obs.shape[1] != obs_dim:
+        raise SegmentReadError(path, f"observations of shape {obs.shape}, the policy takes {obs_dim} per step")
+    if act.ndim != 2 or act.shape[1] != ACTION_DIM:
+        raise SegmentReadError(path, f"actions of shape {act.shape}, expected (T, {ACTION_DIM})")
+    if pose.ndim != 2 or pose.shape[1] != 7:
+        raise SegmentReadError(path, f"poses of shape {pose.shape}, expected (T, 7)")
+    if not (np.isfinite(obs).all() and np.isfinite(act).all()):
+        raise SegmentReadError(path, "non-finite observation or action values")
+    return obs, act, pose
+
+
+def load_takeovers(paths: list[Path], obs_dim: int) -> TakeoverSet:
+    """Reads every segment in ``paths`` (in order); unusable ones are listed in ``skipped``."""
+    obs, act, pose, ends, used, skipped = [], [], [], [], [], {}
+    for path in paths:
+        path = Path(path)
+        try:
+            o, a, p = _steps(path, obs_dim)
+        except SegmentReadError as exc:
+            skipped[path.name] = exc.reason
+            continue
+        except Exception as exc:  # noqa: BLE001 - any other failure of one file is that file's problem
+            skipped[path.name] = f"unreadable ({type(exc).__name__}: {exc})"
+            continue
+        obs.append(o)
+        act.append(a)
+        pose.append(p)
+        ends.append(len(o))
+        used.append(path.name)
+    if not obs:
+        return TakeoverSet(
+            np.zeros((0, obs_dim), np.float32),
+            np.zeros((0, ACTION_DIM), np.float32),
+            np.zeros((0, 7), np.float32),
+            np.zeros(0, np.int64),
+            used,
+            skipped,
+        )
+    return TakeoverSet(
+        np.concatenate(obs),
+        np.concatenate(act),
+        np.concatenate(pose),
+        np.cumsum(ends).astype(np.int64),
+        used,
+        skipped,
+    )

@@ -1,0 +1,126 @@
+"""Fine-tuning's parts: the promotion gate, the step count, resumable training, the segment reader."""
+
+import numpy as np
+import pytest
+
+from policy.checkpoint import state_equal
+from policy.finetune import FinetuneConfig, FinetuneDataError, TaskResult, finetune_policy, gate
+from policy.train import TrainConfig, TrainState, train_policy
+from storage import keys
+from storage.segments import SegmentWriter
+from storage.takeovers import load_takeovers
+from tests.helpers import tiny_policy
+
+
+def _results(**rates):
+    return {t: TaskResult(t, 10, round(r * 10), 7) for t, r in rates.items()}
+
+
+def test_the_gate_promotes_only_a_version_better_on_targets_and_not_worse_on_training():
+    parent = _results(train=0.9, a=0.2, b=0.4)
+    ok = gate(parent, _results(train=0.9, a=0.5, b=0.5), "train", ["a", "b"], tolerance=0.05)
+    assert ok.promote and ok.evidence["target_success"] == {"parent": pytest.approx(0.3), "candidate": 0.5}
+    within = gate(parent, _results(train=0.9 - 0.1, a=0.9, b=0.9), "train", ["a", "b"], tolerance=0.1)
+    assert within.promote  # a drop of exactly the tolerance is allowed
+    worse = gate(parent, _results(train=0.7, a=0.9, b=0.9), "train", ["a", "b"], tolerance=0.1)
+    assert not worse.promote and worse.reason.startswith("worse on train: 0.70 against 0.90")
+    same = gate(parent, _results(train=1.0, a=0.2, b=0.4), "train", ["a", "b"], tolerance=0.05)
+    assert not same.promote and same.reason.startswith("not better on a, b: 0.30 against 0.30")
+    small = gate(parent, _results(train=0.9, a=0.3, b=0.4), "train", ["a", "b"], tolerance=0.05, min_gain=0.1)
+    assert not small.promote and "needs more than +0.10" in small.reason
+    # same task as target and training: must improve on it
+    assert gate(_results(t=0.5), _results(t=0.6), "t", ["t"], 0.05).promote
+    assert not gate(_results(t=0.5), _results(t=0.5), "t", ["t"], 0.05).promote
+
+
+def test_the_gate_refuses_to_compare_different_evaluations():
+    with pytest.raises(ValueError, match="not evaluated"):
+        gate(_results(train=1.0), _results(train=1.0, a=1.0), "train", ["a"], 0.05)
+    other_seed = {"train": TaskResult("train", 10, 9, 8)}
+    with pytest.raises(ValueError, match="different episodes"):
+        gate(_results(train=0.9), other_seed, "train", ["train"], 0.05)
+
+
+def test_steps_scale_with_the_takeover_data():
+    cfg = FinetuneConfig(batch_size=64, ratio=0.5, passes=60, min_steps=300, max_steps=6000)
+    assert cfg.steps_for(10) == 300
+    assert cfg.steps_for(1000) == 1875  # 60 * 1000 / 32
+    assert cfg.steps_for(10**6) == 6000
+    assert FinetuneConfig(steps=7).steps_for(10**6) == 7
+    for bad in ({"ratio": 0}, {"ratio": 1.5}, {"min_steps": 10, "max_steps": 5}, {"steps": 0}, {"tolerance": 1}):
+        with pytest.raises(ValueError):
+            FinetuneConfig(**bad)
+
+
+def _data(n=40, seed=0):
+    rng = np.random.default_rng(seed)
+    obs = rng.normal(size=(n, 1, 26)).astype(np.float32)
+    act = np.concatenate(
+        [rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0], (n, 3)), np.tile([0, 1, 0, 1, 0, 0, -1.0], (n, 1))], 1
+    ).astype(np.float32)[:, None]
+    return {keys.OBS: obs, keys.ACTION: act}
+
+
+def test_training_resumed_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path):
+    cfg = TrainConfig(steps=10, batch_size=8, warmup_steps=2, val_every=100)
+    straight, _ = train_policy(tiny_policy(), _data(), None, cfg, progress=False)
+    states = []
+    train_policy(
+        tiny_policy(),
+        _data(),
+        None,
+        cfg,
+        progress=False,
+        checkpoint=lambda s: states.append(s.save(tmp_path / f"at{s.step}")),
+        checkpoint_every=4,
+    )
+    assert [TrainState.load(p).step for p in states] == [4, 8, 10]
+    resumed, history = train_policy(
+        tiny_policy(), _data(), None, cfg, progress=False, resume=TrainState.load(tmp_path / "at4")
+    )
+    assert state_equal(straight, resumed)
+    assert history["step"][0] == 0  # the history before the checkpoint is kept
+
+
+def test_finetuning_starts_from_the_parent_and_keeps_its_normalizers(tmp_path):
+    parent = tiny_policy()
+    cfg = FinetuneConfig(steps=6, batch_size=8, checkpoint_every=3, warmup_steps=1)
+    child, history = finetune_policy(parent, _data(10, 1), _data(30, 2), cfg, tmp_path / "work", progress=False)
+    assert history["takeover_samples"] == 10 and history["pretraining_samples"] == 30
+    assert child.action_normalizer.stats() == parent.action_normalizer.stats()
+    assert not state_equal(child, parent)
+    assert TrainState.load(tmp_path / "work").step == 6
+    with pytest.raises(FinetuneDataError, match="no takeover samples"):
+        finetune_policy(parent, _data(0), _data(30), cfg, progress=False)
+
+
+def _segment(path, obs_dim=26, steps=4, close=True):
+    w = SegmentWriter(path, {"robot": 0})
+    for t in range(steps):
+        act = np.r_[[0.01 * t, 0, 0.9], [0, 1, 0, 1, 0, 0], [1.0]]
+        w.write_step(np.full(obs_dim, t, np.float32), {}, act, act * 0, act[:3], [0, 0, 0, 1.0], None)
+    if close:
+        w.close("closed", "hand-back")
+    else:
+        w.flush()
+    return path
+
+
+def test_the_segment_reader_windows_each_segment_and_names_what_it_skips(tmp_path):
+    a = _segment(tmp_path / "a.mcap", steps=3)
+    b = _segment(tmp_path / "b.mcap", steps=2)
+    wrong = _segment(tmp_path / "wrong.mcap", obs_dim=5)
+    (tmp_path / "junk.mcap").write_bytes(b"junk")
+    open_one = _segment(tmp_path / "open.mcap", close=False)
+    out = load_takeovers([a, tmp_path / "junk.mcap", wrong, b, tmp_path / "missing.mcap", open_one], obs_dim=26)
+    assert out.used == ["a.mcap", "b.mcap"] and len(out) == 5
+    assert set(out.skipped) == {"junk.mcap", "wrong.mcap", "missing.mcap", "open.mcap"}
+    assert "the policy takes 26" in out.skipped["wrong.mcap"] and out.skipped["missing.mcap"] == "no such file"
+    arrays = out.arrays(obs_horizon=2, action_horizon=3)
+    assert arrays[keys.OBS].shape == (5, 2, 26) and arrays[keys.ACTION].shape == (5, 3, 10)
+    # segment a: history padded with its first observation, chunk with its last action; b starts fresh
+    assert arrays[keys.OBS][0, :, 0].tolist() == [0, 0] and arrays[keys.OBS][1, :, 0].tolist() == [0, 1]
+    assert arrays[keys.ACTION][2, :, 0].tolist() == pytest.approx([0.02, 0.02, 0.02])
+    assert arrays[keys.OBS][3, :, 0].tolist() == [0, 0]
+    # the label is the absolute action the operator's command produced, not the serving version's normalized one
+    assert arrays[keys.ACTION][1, 0].tolist() == pytest.approx([0.01, 0, 0.9, 0, 1, 0, 1, 0, 0, 1])

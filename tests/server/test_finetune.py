@@ -1,0 +1,264 @@
+"""The fine-tuning job end to end on a tiny policy: real MCAP segments and episodes, a real SQLite store,
+evaluation in the real simulator through the controller."""
+
+from __future__ import annotations
+
+import json
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlalchemy import select
+
+from policy.checkpoint import load_calibration, read_info, save_calibration, save_policy
+from policy.finetune import FinetuneConfig
+from policy.signals import make_signal, save_signal
+from server import registry
+from server.db import FinetuneJob, PolicyVersion, SegmentRecord, make_engine, migrate, session_factory
+from server.errors import ServiceError
+from server.finetune_job import FinetuneRunner, JobBusy, JobRequest, parse_since
+from server.lease import FINETUNE_LEASE, acquire, release
+from sim.registry import make_task
+from storage import keys
+from storage.episodes import EpisodeWriter
+from storage.segments import SegmentWriter
+from tests.helpers import tiny_policy
+
+TASK = "lift-cube"
+TINY = FinetuneConfig(steps=12, batch_size=8, checkpoint_every=5, eval_episodes=1, min_steps=1)
+
+
+def _demos(folder: Path, n: int, obs_dim: int) -> Path:
+    rng = np.random.default_rng(1)
+    for i in range(n):
+        w = EpisodeWriter(folder / f"{TASK}_seed{i:06d}.mcap", {"task": TASK, "seed": i}, object_names=[])
+        for t in range(6):
+            act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [-1.0]]
+            w.write_step(
+                t,
+                rng.normal(size=obs_dim),
+                act,
+                act[:3],
+                np.array([0, 0, 0, 1.0]),
+                0.04,
+                t == 5,
+                keys.SOURCE_EXPERT,
+                {},
+            )
+        w.finish(True, 6, "success")
+    return folder
+
+
+def _segment(path: Path, obs_dim: int, steps: int = 5, seed: int = 0) -> Path:
+    rng = np.random.default_rng(seed)
+    w = SegmentWriter(path, {"robot": 0, "task": "lift-nut", "operator": "op"})
+    for _ in range(steps):
+        act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [1.0]]
+        w.write_step(rng.normal(size=obs_dim), {"dpos": [0, 0, 0.01]}, act, act, act[:3], [0, 0, 0, 1.0], 0.1)
+    w.close("closed", "hand-back")
+    return path
+
+
+@pytest.fixture
+def store(tmp_path):
+    """A data folder with a registered active tiny policy (pretrained on 5 synthetic episodes), two good
+    takeover segments and one corrupt one, all closed."""
+    obs_dim = make_task(TASK).obs_spec.dim
+    data_dir = tmp_path / "var"
+    demos = _demos(tmp_path / "demos", 5, obs_dim)
+    policy = tiny_policy(TASK)
+    folder = tmp_path / "policies" / "lift-cube"
+    names = sorted(p.name for p in demos.glob("*.mcap"))
+    save_policy(
+        policy,
+        folder,
+        {
+            "task": TASK,
+            "dataset": {"folder": str(demos), "train_episodes": names[:4], "val_episodes": names[4:]},
+            "command": "test",
+        },
+    )
+    save_calibration(
+        folder, {"threshold": 1.0, "quantile": 0.95, "samples": 0, "uncertainty": {"num_samples": 16, "max_modes": 2}}
+    )
+    spread = make_signal("spread", policy, {"num_samples": 8})
+    spread.calibration = {"threshold": 1.0, "quantile": 0.95, "samples": 0, "spread_scale": 1.0}
+    save_signal(spread, folder, {})
+    url = f"sqlite:///{data_dir / 'hitl.db'}"
+    migrate(url)
+    sessions = session_factory(make_engine(url))
+    row = registry.register(sessions, folder, TASK, status="active")
+    seg_dir = data_dir / "segments"
+    seg_dir.mkdir(parents=True)
+    _segment(seg_dir / "good-1.mcap", obs_dim, seed=1)
+    _segment(seg_dir / "good-2.mcap", obs_dim, seed=2)
+    (seg_dir / "broken.mcap").write_bytes(b"\x89MCAP0\r\n" + b"garbage" * 10)
+    now = datetime.now(UTC)
+    with sessions() as s:
+        for name in ("good-1", "broken", "good-2"):
+            s.add(
+                SegmentRecord(
+                    robot_id=0,
+                    task="lift-nut",
+                    policy_id=row.id,
+                    operator="op",
+                    reason="test",
+                    status="closed",
+                    ended_by="hand-back",
+                    steps=5,
+                    path=f"segments/{name}.mcap",
+                    ended_at=now,
+                )
+            )
+        s.add(
+            SegmentRecord(
+                robot_id=1,
+                task="lift-nut",
+                policy_id=row.id,
+                operator="op",
+                reason="test",
+                status="open",
+                steps=3,
+                path="segments/open.mcap",
+            )
+        )
+        s.commit()
+    return sessions, data_dir, row
+
+
+def _snapshot(sessions) -> list[tuple]:
+    with sessions() as s:
+        versions = [(r.id, r.name, r.version, r.status, r.path) for r in s.scalars(select(PolicyVersion))]
+        jobs = [(j.id, j.status) for j in s.scalars(select(FinetuneJob))]
+    return versions + jobs
+
+
+def test_a_job_makes_a_recalibrated_evaluated_version_and_records_the_gate(store):
+    sessions, data_dir, parent = store
+    lines = []
+    runner = FinetuneRunner(sessions, data_dir, progress=False, report=lines.append)
+    [summary] = runner.run(JobRequest(policy="lift-cube@active", config=TINY))
+    assert summary["status"] == "succeeded", summary
+    child = registry.resolve(sessions, summary["version"])
+    assert child.ref == "lift-cube@2" and child.parent_id == parent.id
+    # the corrupt segment is named with its reason and skipped; the open one is never used
+    assert any("broken.mcap" in line for line in lines)
+    with sessions() as s:
+        job = s.get(FinetuneJob, summary["job"])
+    assert job.status == "succeeded" and job.version_id == child.id and job.progress == 1.0
+    assert set(job.data["skipped"]) == {"broken.mcap"} and job.data["counts"]["samples"] == 10
+    assert child.manifest["segments"] == ["segments/good-1.mcap", "segments/good-2.mcap"]
+    assert child.manifest["pretraining"]["episodes"] == read_info(parent.path)["dataset"]["train_episodes"]
+    # a recalibrated threshold on the held-out episode, carried into the folder, its signals recalibrated
+    cal = load_calibration(child.path)
+    assert child.threshold == pytest.approx(cal["threshold"]) and cal["episodes"] == ["lift-cube_seed000004.mcap"]
+    assert child.calibration["episodes"] == cal["episodes"] and "spread" in cal["signals"]
+    assert (Path(child.path) / "signals" / "spread" / "config.json").is_file()
+    # evaluated on the training task and the takeovers' task, parent on the same seeds; a gate decision
+    assert set(job.evaluation["candidate"]["tasks"]) == {"lift-cube", "lift-nut"}
+    assert job.evaluation["parent"]["seed"] == job.evaluation["candidate"]["seed"]
+    assert job.gate["evidence"]["target_tasks"] == ["lift-nut"] and "promote" in job.gate
+    expected = "active" if job.gate["promote"] else "candidate"
+    assert child.status == expected and child.status_reason.startswith("gate ")
+    assert registry.resolve(sessions, "lift-cube").id == (child.id if job.gate["promote"] else parent.id)
+    info = read_info(child.path)
+    assert info["finetune"]["job"] == job.id and info["finetune"]["manifest"]["parent"] == "lift-cube@1"
+
+
+@pytest.mark.parametrize(
+    ("request_kw", "status", "needle"),
+    [
+        ({"policy": "no-such-policy"}, 404, "no policy named 'no-such-policy'"),
+        ({"policy": "lift-cube@7"}, 404, "no policy lift-cube@7"),
+        ({"policy": "lift-cube", "since": timedelta(seconds=1)}, 422, "no closed or recovered takeover segments"),
+        ({"policy": "bad name!"}, 422, "bad policy reference"),
+    ],
+)
+def test_bad_input_is_refused_and_changes_nothing(store, request_kw, status, needle):
+    sessions, data_dir, _ = store
+    before = _snapshot(sessions)
+    if "since" in request_kw:  # the segments ended a minute ago: none in a 1 s window
+        with sessions() as s:
+            for seg in s.scalars(select(SegmentRecord)):
+                seg.ended_at = datetime.now(UTC) - timedelta(minutes=1)
+            s.commit()
+    with pytest.raises(ServiceError) as err:
+        FinetuneRunner(sessions, data_dir, progress=False).run(JobRequest(config=TINY, **request_kw))
+    assert err.value.status == status and needle in err.value.message
+    assert _snapshot(sessions) == before
+
+
+def test_only_corrupt_segments_fail_the_job_with_their_names_and_register_nothing(store):
+    sessions, data_dir, parent = store
+    for name in ("good-1", "good-2"):
+        (data_dir / "segments" / f"{name}.mcap").write_bytes(b"not an mcap file")
+    [summary] = FinetuneRunner(sessions, data_dir, progress=False).run(JobRequest(policy="lift-cube", config=TINY))
+    assert summary["status"] == "failed" and "good-1.mcap" in summary["error"]
+    assert [v.ref for v in registry.versions(sessions, "lift-cube")] == ["lift-cube@1"]
+    with sessions() as s:
+        job = s.scalars(select(FinetuneJob)).one()
+    assert job.status == "failed" and "no usable sample" in job.error and job.version_id is None
+
+
+def test_a_second_job_is_refused_while_the_lease_is_held(store):
+    sessions, data_dir, _ = store
+    held = acquire(sessions, FINETUNE_LEASE, "other-host:1", ttl=60)
+    before = _snapshot(sessions)
+    with pytest.raises(JobBusy, match="other-host:1"):
+        FinetuneRunner(sessions, data_dir, progress=False).run(JobRequest(policy="lift-cube", config=TINY))
+    assert _snapshot(sessions) == before
+    release(sessions, held)
+
+
+def test_an_interrupted_job_resumes_from_its_checkpoint(store, monkeypatch):
+    sessions, data_dir, _ = store
+    import policy.train as train
+
+    real = train.TrainState.save
+    calls = []
+
+    def crash_after_first_checkpoint(self, folder):
+        real(self, folder)
+        calls.append(self.step)
+        if len(calls) == 1:
+            raise KeyboardInterrupt  # as SIGTERM does in `hitl finetune`
+
+    monkeypatch.setattr(train.TrainState, "save", crash_after_first_checkpoint)
+    runner = FinetuneRunner(sessions, data_dir, progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run(JobRequest(policy="lift-cube", config=TINY))
+    with sessions() as s:
+        job = s.scalars(select(FinetuneJob)).one()
+    assert job.status == "interrupted" and calls == [5]
+    [summary] = FinetuneRunner(sessions, data_dir, progress=False).run(JobRequest(policy="lift-cube", config=TINY))
+    assert summary["job"] == job.id and summary["status"] == "succeeded"
+    info = read_info(registry.resolve(sessions, summary["version"]).path)
+    assert info["finetune"]["history"]["resumed_from_step"] == 5 and calls == [5, 10, 12]
+
+
+def test_with_no_policy_only_lineages_with_new_segments_run(store):
+    sessions, data_dir, _ = store
+    runner = FinetuneRunner(sessions, data_dir, progress=False)
+    assert [p.lineage for p in runner.plan(JobRequest())] == ["lift-cube"]
+    runner.run(JobRequest(config=TINY))
+    assert runner.plan(JobRequest()) == []  # every segment is in a version's manifest now
+    assert runner.run(JobRequest(config=TINY)) == []
+
+
+def test_since_parses_durations():
+    assert parse_since("24h") == timedelta(hours=24) and parse_since("30m") == timedelta(minutes=30)
+    assert parse_since("7d") == timedelta(days=7)
+    for bad in ("", "24", "h", "-1h", "0h", "1y"):
+        with pytest.raises(ValueError, match="--since"):
+            parse_since(bad)
+
+
+def test_job_summary_is_json(store):
+    sessions, data_dir, _ = store
+    lines = []
+    FinetuneRunner(sessions, data_dir, progress=False, report=lines.append).run(
+        JobRequest(policy="lift-cube", config=TINY)
+    )
+    doc = json.loads(lines[-1])
+    assert doc["lineage"] == "lift-cube" and doc["data"]["segments"] == 2

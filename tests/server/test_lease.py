@@ -1,0 +1,80 @@
+"""The database lease: one holder at a time, expiry by the database's clock, fencing, and a crashed
+holder (a real process killed without releasing) losing it after its ttl."""
+
+import subprocess
+import sys
+import time
+
+import pytest
+
+from server.db import make_engine, migrate, session_factory
+from server.lease import Heartbeat, LeaseLost, acquire, holder, release, renew
+
+
+@pytest.fixture
+def sessions(tmp_path):
+    url = f"sqlite:///{tmp_path / 'hitl.db'}"
+    migrate(url)
+    return session_factory(make_engine(url)), url
+
+
+def test_one_holder_at_a_time_and_release_frees_it(sessions):
+    s, _ = sessions
+    a = acquire(s, "job", "a", ttl=30)
+    assert a is not None and a.fence == 1
+    assert acquire(s, "job", "b", ttl=30) is None
+    assert holder(s, "job")[0] == "a" and 29 < holder(s, "job")[1] <= 30
+    assert acquire(s, "other", "b", ttl=30) is not None  # leases are per name
+    assert release(s, a) and holder(s, "job") == (None, None)
+    b = acquire(s, "job", "b", ttl=30)
+    assert b is not None and b.fence == 2
+    assert not release(s, a)  # a's lease is gone: releasing it does not free b's
+
+
+def test_an_expired_lease_is_taken_over_and_fences_out_the_old_holder(sessions):
+    s, _ = sessions
+    a = acquire(s, "job", "a", ttl=0.5)
+    assert acquire(s, "job", "b", ttl=30) is None
+    time.sleep(0.7)
+    b = acquire(s, "job", "b", ttl=30)
+    assert b is not None and b.fence == a.fence + 1
+    with pytest.raises(LeaseLost):
+        renew(s, a)
+    renew(s, b)  # still b's
+
+
+def test_a_heartbeat_keeps_the_lease_past_its_ttl(sessions):
+    s, _ = sessions
+    a = acquire(s, "job", "a", ttl=0.6)
+    with Heartbeat(s, a) as beat:
+        time.sleep(1.5)
+        assert acquire(s, "job", "b", ttl=30) is None
+        beat.check()
+    assert not beat.lost.is_set()
+
+
+CRASHER = """
+import os, sys
+from server.db import make_engine, session_factory
+from server.lease import acquire
+s = session_factory(make_engine(sys.argv[1]))
+lease = acquire(s, "finetune", "crasher", ttl=1.5)
+print("held" if lease else "refused", flush=True)
+os._exit(9)  # no release, no cleanup: a crash
+"""
+
+
+def test_a_crashed_holders_lease_expires(sessions):
+    s, url = sessions
+    out = subprocess.run([sys.executable, "-c", CRASHER, url], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 9 and out.stdout.strip() == "held", out.stderr
+    assert acquire(s, "finetune", "me", ttl=30) is None and holder(s, "finetune")[0] == "crasher"
+    time.sleep(1.6)
+    lease = acquire(s, "finetune", "me", ttl=30)
+    assert lease is not None and lease.fence == 2
+
+
+def test_ttl_must_be_positive(sessions):
+    s, _ = sessions
+    with pytest.raises(ValueError, match="ttl"):
+        acquire(s, "job", "a", ttl=0)

@@ -1,0 +1,125 @@
+"""The policy registry: references, versions per lineage, promote and rollback, and the running fleet
+following it (hot swap at each robot's next episode), as ``hitl policy`` from another process does."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from server import registry
+from server.db import PolicyVersion
+from server.errors import ServiceError
+from tests.helpers import tiny_policy_folder
+from tests.server.test_fleet import _fleet
+
+
+def test_references_parse_or_say_what_is_expected():
+    assert registry.PolicyRef.parse("lift-cube") == registry.PolicyRef("lift-cube", None)
+    assert registry.PolicyRef.parse("lift-cube@active") == registry.PolicyRef("lift-cube", None)
+    assert registry.PolicyRef.parse("lift-cube@12") == registry.PolicyRef("lift-cube", 12)
+    assert str(registry.PolicyRef("a", 3)) == "a@3"
+    for bad in ("", "@2", "a@0", "a@-1", "a@latest", "a b", "a@2@3", "../x"):
+        with pytest.raises(ServiceError) as err:
+            registry.PolicyRef.parse(bad)
+        assert err.value.status == 422 and "NAME@VERSION" in err.value.message
+
+
+def _running(fleet, versions):
+    for _ in range(12):  # horizon 4: every robot starts a new episode
+        fleet.tick()
+    return {fleet.view(i).slot.version for i in fleet.robots} == set(versions)
+
+
+def test_promote_and_rollback_reach_the_fleet_at_the_next_episode(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=4, count=2)
+    fleet.tick()
+    v1 = registry.resolve(fleet.sessions, "policy")
+    assert v1.ref == "policy@1" and v1.status == "active"
+    folder = tiny_policy_folder(tmp_path / "policy-v2", "lift-cube", 1e9)
+    v2 = registry.register(fleet.sessions, folder, "lift-cube", parent=v1.id)
+    assert v2.ref == "policy@2" and v2.status == "candidate"
+    episode = fleet.view(0).episode_id
+    registry.promote(fleet.sessions, "policy@2", "test")  # as `hitl policy promote` does, outside the service
+    assert fleet.sync_policies() == [v2.id]  # the fleet's registry watcher
+    fleet.tick()
+    assert fleet.view(0).slot.version == v1.id and fleet.view(0).episode_id == episode  # finishes its episode
+    assert _running(fleet, [v2.id])
+    rows = {r.ref: r for r in registry.versions(fleet.sessions, "policy")}
+    assert rows["policy@2"].status == "active" and rows["policy@1"].status == "retired"
+    assert rows["policy@1"].status_reason == "replaced by policy@2"
+    back = registry.rollback(fleet.sessions, "policy")
+    assert back.id == v1.id and fleet.sync_policies() == [v1.id]
+    assert _running(fleet, [v1.id])
+    rows = {r.ref: r for r in registry.versions(fleet.sessions, "policy")}
+    assert rows["policy@1"].status == "active" and rows["policy@2"].status == "retired"
+    assert rows["policy@2"].status_reason == "rolled back to policy@1"
+    fleet.stop()
+
+
+def test_an_active_version_that_cannot_be_served_leaves_the_fleet_on_its_current_one(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=4)
+    v1 = registry.resolve(fleet.sessions, "policy")
+    folder = tiny_policy_folder(tmp_path / "policy-v2", "lift-cube", 1e9)
+    v2 = registry.register(fleet.sessions, folder, "lift-cube", parent=v1.id)
+    registry.promote(fleet.sessions, v2.ref)
+    (folder / "signals" / "spread" / "config.json").unlink()  # the asking signal is gone
+    assert fleet.sync_policies() == [] and fleet.sync_policies() == []  # reported once, not retried
+    assert _running(fleet, [v1.id])
+    # through the service's own method it is refused and the registry left as it was
+    registry.promote(fleet.sessions, v1.ref)
+    with pytest.raises(ServiceError) as err:
+        fleet.activate_policy(v2.id)
+    assert err.value.status == 422 and "spread" in err.value.message
+    assert registry.resolve(fleet.sessions, "policy").id == v1.id
+    fleet.stop()
+
+
+def test_bad_requests_change_nothing(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=4)
+    before = [(r.id, r.status, r.status_reason) for r in registry.versions(fleet.sessions)]
+    for call, status in (
+        (lambda: registry.promote(fleet.sessions, "nope@1"), 404),
+        (lambda: registry.promote(fleet.sessions, "policy@9"), 404),
+        (lambda: registry.rollback(fleet.sessions, "policy"), 409),  # v1 has no parent
+        (lambda: registry.rollback(fleet.sessions, "nope"), 404),
+        (lambda: registry.register(fleet.sessions, tmp_path, "lift-cube", parent=99), 404),
+    ):
+        with pytest.raises(ServiceError) as err:
+            call()
+        assert err.value.status == status
+    assert [(r.id, r.status, r.status_reason) for r in registry.versions(fleet.sessions)] == before
+    fleet.stop()
+
+
+def test_the_cli_lists_promotes_and_rolls_back(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=4)
+    v1 = registry.resolve(fleet.sessions, "policy")
+    v2 = registry.register(
+        fleet.sessions, tiny_policy_folder(tmp_path / "v2", "lift-cube", 1e9), "lift-cube", parent=v1.id
+    )
+    fleet.stop()
+    base = [sys.executable, "-m", "hitl.cli", "policy"]
+    where = ["--data-dir", str(fleet.settings.data_dir)]
+
+    def run(*args):
+        return subprocess.run([*base, *args, *where], capture_output=True, text=True, timeout=120)
+
+    listed = run("list", "--json")
+    assert listed.returncode == 0, listed.stderr
+    assert [(d["ref"], d["status"]) for d in json.loads(listed.stdout)] == [
+        ("policy@1", "active"),
+        ("policy@2", "candidate"),
+    ]
+    out = run("promote", "policy@2")
+    assert out.returncode == 0 and json.loads(out.stdout)["active"] == "policy@2", out.stderr
+    out = run("promote", "policy")
+    assert out.returncode == 2 and "NAME@VERSION" in out.stderr
+    out = run("promote", "ghost@1")
+    assert out.returncode == 2 and "no policy named 'ghost'" in out.stderr
+    out = run("rollback", "policy")
+    assert out.returncode == 0 and json.loads(out.stdout)["active"] == "policy@1", out.stderr
+    with fleet.sessions() as s:
+        assert s.get(PolicyVersion, v2.id).status == "retired"
+    text = run("list").stdout
+    assert "policy@1" in text and "rolled back to policy@1" in text
