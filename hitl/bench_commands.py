@@ -182,3 +182,57 @@ def register(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--json", action="store_true", help="one line of JSON")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_hitl_service)
+
+
+def _cmd_bench_finetune(args: argparse.Namespace) -> int:
+    import torch
+
+    from policy.finetune import FinetuneConfig
+    from policy.finetune_bench import FinetuneBenchConfig, run_bench
+    from policy.finetune_report import markdown, plot, summarize
+    from policy.hitl_docs import replace_section
+
+    torch.set_num_threads(args.threads)
+    given = {k: v for k, v in (("policy", args.policy), ("eval_episodes", args.episodes)) if v is not None}
+    if args.sources:
+        given["sources"] = tuple(args.sources)
+    if args.counts:
+        given["counts"] = tuple(args.counts)
+    if args.ratio is not None:
+        given["finetune"] = FinetuneConfig(ratio=args.ratio)
+    cfg = FinetuneBenchConfig.quick(**given) if args.quick else FinetuneBenchConfig(**given)
+    result = run_bench(cfg, args.cache, progress=not args.quiet)
+    summary = summarize(result)
+    command = "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    result |= {
+        "summary": {**summary, "curves": {s: {str(k): v for k, v in c.items()} for s, c in summary["curves"].items()}},
+        "command": command,
+        "machine": {"platform": platform.platform(), "date": datetime.date.today().isoformat()},
+    }
+    if args.report:
+        figure = plot(summary, Path(args.figures) / ("finetune-quick.png" if args.quick else "finetune.png"))
+        body = markdown(result, summary, figure, Path(args.report), command)
+        replace_section(Path(args.report), "finetune-quick" if args.quick else "finetune", body)
+    print(json.dumps(result, indent=None if args.json else 2))
+    return 0
+
+
+def register_finetune(bench: argparse._SubParsersAction) -> None:
+    q = bench.add_parser(
+        "finetune",
+        help="unseen-object success against fine-tuning samples, per data source (the paper's fine-tuning figure)",
+        description="every point starts from the same pretrained policy; results are cached per point under --cache",
+    )
+    q.add_argument("--quick", action="store_true", help="takeover:spread and full-trajectory, K = 50, 100, 10 episodes")
+    q.add_argument("--policy", default=None, help="default: policies/lift-cube (runs/lift-cube has every signal)")
+    q.add_argument("--sources", nargs="+", default=None, help="takeover:SIGNAL ... and/or full-trajectory")
+    q.add_argument("--counts", nargs="+", type=int, default=None, help="sample counts K (default 20 50 100 200)")
+    q.add_argument("--episodes", type=int, default=None, help="evaluation episodes per task (default 20)")
+    q.add_argument("--ratio", type=float, default=None, help="takeover share of each mini-batch (default 0.5)")
+    q.add_argument("--cache", default="runs/bench-finetune")
+    q.add_argument("--report", default=None, help="write the table into this markdown file (docs/benchmarks.md)")
+    q.add_argument("--figures", default="docs/img")
+    q.add_argument("--threads", type=int, default=1)
+    q.add_argument("--json", action="store_true", help="compact JSON")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_finetune)

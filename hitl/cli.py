@@ -169,6 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     signal_commands.register(sub, bench)
     server_commands.register(sub, bench)
     bench_commands.register(bench)
+    bench_commands.register_finetune(bench)
     console_commands.register(sub, bench)
     registry_commands.register(sub)
     return parser

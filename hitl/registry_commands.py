@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import signal
 import sys
@@ -113,12 +114,14 @@ def _cmd_policy_rollback(args: argparse.Namespace) -> int:
 def _finetune_config(args: argparse.Namespace, settings):
     from policy.finetune import FinetuneConfig
 
-    given = {
+    ft = settings.finetune
+    given = {"eval_episodes": ft.eval_episodes, "tolerance": ft.tolerance, "min_gain": ft.min_gain}
+    given |= {
         k: getattr(args, k)
-        for k in ("ratio", "steps", "batch_size", "lr", "seed", "eval_seed", "tolerance", "min_gain")
+        for k in ("ratio", "steps", "batch_size", "lr", "seed", "eval_seed", "tolerance", "min_gain", "eval_episodes")
         if getattr(args, k) is not None
     }
-    return FinetuneConfig(eval_episodes=args.eval_episodes or settings.finetune.eval_episodes, **given)
+    return FinetuneConfig(**given)
 
 
 def _interrupted(signum, frame) -> None:
@@ -132,8 +135,11 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
 
     from server.errors import ServiceError
     from server.finetune_job import FinetuneRunner, JobBusy, JobRequest, parse_since
+    from server.lease import LeaseLost
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if args.nice:
+        os.nice(args.nice)  # below the fleet: the service starts its jobs this way
     try:
         settings, sessions = _store(args)
         torch.set_num_threads(args.threads or settings.finetune.threads)
@@ -160,7 +166,7 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
         # a SIGTERM (systemd, Kubernetes, the service stopping) ends the job as "interrupted", resumable
         signal.signal(signal.SIGTERM, _interrupted)
         results = runner.run(request)
-    except JobBusy as exc:
+    except (JobBusy, LeaseLost) as exc:
         print(f"hitl finetune: {exc}", file=sys.stderr)
         return EXIT_BUSY
     except (ServiceError, ValueError, FileNotFoundError, KeyError) as exc:
@@ -209,8 +215,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--tolerance", type=float, default=None, help="allowed drop on the training task (default 0.05)")
-    p.add_argument("--min-gain", type=float, default=None, help="required rise on the target tasks (default 0)")
+    p.add_argument("--tolerance", type=float, default=None, help="allowed drop on the training task (settings: 0.05)")
+    p.add_argument("--min-gain", type=float, default=None, help="required rise on the target tasks (settings: 0)")
     p.add_argument(
         "--promote",
         action=argparse.BooleanOptionalAction,
@@ -218,6 +224,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="promote a version that passes the gate (default: settings, on)",
     )
     p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--nice", type=int, default=0, help="lower this process's CPU priority by N (os.nice)")
     p.add_argument("--trigger", default="cli", help=argparse.SUPPRESS)
     p.add_argument("--job", type=int, default=None, help=argparse.SUPPRESS)  # a queued job row (the API's)
     p.add_argument("--quiet", action="store_true", help="no progress bars")

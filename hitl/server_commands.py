@@ -67,6 +67,28 @@ def _cmd_operator_bot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_finetune_load(args: argparse.Namespace) -> int:
+    import json
+
+    from server.bench_finetune_load import bench_finetune_load
+
+    result = bench_finetune_load(
+        robots=args.robots,
+        task=args.task,
+        control_hz=args.control_hz,
+        idle_seconds=args.idle_seconds,
+        seconds=args.seconds,
+        niceness=args.niceness,
+        progress=not args.quiet,
+    )
+    text = json.dumps(result, indent=None if args.json else 2)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text + "\n")
+    print(text)
+    return 0
+
+
 def _cmd_bench_fleet(args: argparse.Namespace) -> int:
     import json
 
@@ -156,6 +178,18 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--token", required=True, help="an operator token")
     p.add_argument("--takeovers", type=int, default=None, help="stop after this many takeovers")
     p.set_defaults(func=_cmd_operator_bot)
+
+    q = bench.add_parser("finetune-load", help="the fleet's control rate while a fine-tuning job runs beside it")
+    q.add_argument("--robots", type=int, default=8)
+    q.add_argument("--task", default="lift-cube")
+    q.add_argument("--control-hz", type=float, default=10.0)
+    q.add_argument("--idle-seconds", type=float, default=20.0, help="measured before and after the job")
+    q.add_argument("--seconds", type=float, default=60.0, help="measured while the job runs")
+    q.add_argument("--niceness", type=int, default=19, help="the job's CPU priority (the setting)")
+    q.add_argument("--out", default=None, help="also write the JSON here")
+    q.add_argument("--json", action="store_true")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_finetune_load)
 
     q = bench.add_parser("fleet", help="fleet throughput against raw physics; command latency")
     q.add_argument("--robots", default="1,4,8,16")

@@ -74,6 +74,8 @@ class AssistedEpisode:
     events: int = 0  # assistance requests by the driver
     scores: dict[str, list[float]] = field(default_factory=dict)  # every signal, every step
     wants: dict[str, list[bool]] = field(default_factory=dict)
+    # the operator's steps as fine-tuning data: (observation (obs_dim,), absolute action (10,)), in order
+    takeover_pairs: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
     @property
     def assisted_steps(self) -> int:
@@ -159,6 +161,8 @@ def run_assisted(
         ep = episodes[rid]
         ep.operator.append(step.source == keys.SOURCE_OPERATOR)
         ep.actions.append(step.action)
+        if step.source == keys.SOURCE_OPERATOR:  # called before the step: the observation it acted on
+            ep.takeover_pairs.append((task.observe().astype(np.float32), np.asarray(step.action, np.float32)))
         ep.policy_in_control.append(step.source == keys.SOURCE_POLICY or step.asked)
         ep.events += int(step.asked)
         for name in signals:  # NaN / False on the hold step while the operator takes over (not scored)

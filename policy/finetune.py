@@ -35,10 +35,10 @@ class FinetuneConfig:
 
     ratio: float = 0.5
     batch_size: int = 64
-    lr: float = 1e-4
+    lr: float = 5e-4
     warmup_steps: int = 20
     passes: float = 60.0
-    min_steps: int = 300
+    min_steps: int = 500
     max_steps: int = 6000
     steps: int | None = None
     seed: int = 0

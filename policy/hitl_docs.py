@@ -297,6 +297,12 @@ def write_report(summary: dict, raw: dict, report: Path, figures_dir: Path, sect
     prefix = "hitl" if section == "main" else f"hitl-{section}"
     figures = plot_curves(summary, figures_dir, prefix) + plot_timelines(summary, raw, figures_dir, prefix)
     body = markdown(summary, figures, report, paper=section == "main")
+    return replace_section(report, section, body)
+
+
+def replace_section(report: Path, section: str, body: str) -> Path:
+    """Puts ``body`` between the ``hitl-bench:<section>`` markers of ``report``, keeping the hand-written
+    text around them; a report without them gets them appended."""
     begin, end = f"<!-- hitl-bench:{section}:begin -->", f"<!-- hitl-bench:{section}:end -->"
     report.parent.mkdir(parents=True, exist_ok=True)
     text = report.read_text() if report.is_file() else ""

@@ -198,7 +198,7 @@ def create_app(settings: Settings) -> FastAPI:
             app.state.console.start()
         fleet.start()
         log.info("fleet of %d robot(s) started; ready once its control loop has ticked", len(fleet.robots))
-        app.state.launcher = JobLauncher(settings.data_dir, url, settings.finetune.niceness, settings.finetune.promote)
+        app.state.launcher = JobLauncher(settings.data_dir, url, settings.finetune)
         app.state.scheduler = None
         if settings.finetune.schedule:
             app.state.scheduler = Scheduler(

@@ -173,7 +173,12 @@ class FinetuneRunner:
     def run(self, request: JobRequest) -> list[dict]:
         """Plans, then runs one job per lineage under the lease; returns each job's summary.
         Raises ServiceError for bad input and JobBusy when another job holds the lease."""
-        plans = self.plan(request)
+        try:
+            plans = self.plan(request)
+        except ServiceError as exc:
+            if request.job_id is not None:
+                self._finish_queued(request.job_id, "failed", exc.message)
+            raise
         if not plans:
             if request.job_id is not None:
                 self._finish_queued(request.job_id, "failed", "no lineage has new takeover segments")

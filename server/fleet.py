@@ -66,6 +66,7 @@ class Fleet:
         self.slots: dict[int, PolicySlot] = {}  # by policy version id
         self.assigned: dict[str, PolicySlot] = {}  # lineage -> the slot its robots move to at their next episode
         self._unloadable: dict[int, str] = {}  # active versions that failed to load, and why (not retried)
+        self._lineages: tuple[float, tuple] | None = None  # (when read, lineage summaries)
         self.lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -111,13 +112,27 @@ class Fleet:
             active = registry.promote(self.sessions, row.id, "configured in the service's settings")
         if active.id != row.id:
             log.info(
-                "policy %s: serving its active version %s (%s), not the configured folder",
-                row.ref,
+                "%s is configured, but %s is the active version of its lineage (%s): serving it; "
+                "`hitl policy promote %s` serves the configured one",
+                key,
                 active.ref,
-                active.path,
+                active.status_reason,
+                row.ref,
             )
+        if active.id in self._unloadable:
+            active = row
         if active.id not in self.slots:
-            slot = load_slot(self.settings, Path(active.path), task, active.id, active.name)
+            try:
+                slot = load_slot(self.settings, Path(active.path), task, active.id, active.name)
+            except ServiceError as exc:
+                if active.id == row.id:
+                    raise
+                log.error(
+                    "the active %s cannot be served (%s): serving the configured %s", active.ref, exc.message, row.ref
+                )
+                self._unloadable[active.id] = exc.message
+                active = row
+                slot = self.slots.get(row.id) or load_slot(self.settings, Path(row.path), task, row.id, row.name)
             self.slots[active.id] = slot
             self.assigned[active.name] = slot
             with self.sessions() as s:
@@ -537,6 +552,14 @@ class Fleet:
                 422, f"policy {key} expects {obs_dim}-dim observations, {task} gives {spec.obs_spec.dim}"
             )
         return registry.register(self.sessions, key, task, parent=parent, command=info.get("command")).id
+
+    def lineages(self, max_age: float = 5.0) -> tuple[registry.LineageSummary, ...]:
+        """The registry's lineages with their active version and last fine-tuning job (the console's
+        view), read from the database at most every ``max_age`` seconds."""
+        now = time.monotonic()
+        if self._lineages is None or now - self._lineages[0] > max_age:
+            self._lineages = (now, tuple(registry.lineage_summaries(self.sessions)))
+        return self._lineages[1]
 
     def served_lineages(self) -> set[str]:
         with self.lock:

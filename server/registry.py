@@ -190,3 +190,55 @@ def last_jobs(sessions: sessionmaker) -> dict[str, FinetuneJob]:
         newest = select(FinetuneJob.lineage, func.max(FinetuneJob.id).label("id")).group_by(FinetuneJob.lineage)
         ids = [r.id for r in s.execute(newest)]
         return {j.lineage: j for j in s.scalars(select(FinetuneJob).where(FinetuneJob.id.in_(ids)))} if ids else {}
+
+
+@dataclass(frozen=True)
+class LineageSummary:
+    """What the console shows of a lineage: its active version, where it came from, its last job."""
+
+    name: str
+    active: str | None  # NAME@VERSION
+    reason: str | None
+    parent: str | None
+    versions: int
+    candidates: int
+    job_id: int | None = None
+    job_status: str | None = None
+    job_stage: str | None = None
+    job_progress: float = 0.0
+    job_gate: str | None = None
+    job_promoted: bool | None = None
+    job_error: str | None = None
+    job_ended: str | None = None  # ISO time
+
+
+def lineage_summaries(sessions: sessionmaker) -> list[LineageSummary]:
+    rows = versions(sessions)
+    jobs = last_jobs(sessions)
+    by_id = {r.id: r for r in rows}
+    out = []
+    for name in sorted({r.name for r in rows}):
+        mine = [r for r in rows if r.name == name]
+        active = next((r for r in mine if r.status == "active"), None)
+        parent = by_id.get(active.parent_id) if active is not None and active.parent_id is not None else None
+        job = jobs.get(name)
+        gate = (job.gate or {}) if job is not None else {}
+        out.append(
+            LineageSummary(
+                name=name,
+                active=active.ref if active else None,
+                reason=active.status_reason if active else None,
+                parent=parent.ref if parent else None,
+                versions=len(mine),
+                candidates=sum(r.status == "candidate" for r in mine),
+                job_id=job.id if job else None,
+                job_status=job.status if job else None,
+                job_stage=job.stage if job else None,
+                job_progress=float(job.progress or 0.0) if job else 0.0,
+                job_gate=gate.get("reason"),
+                job_promoted=gate.get("promoted"),
+                job_error=job.error if job else None,
+                job_ended=job.ended_at.isoformat(timespec="minutes") if job and job.ended_at else None,
+            )
+        )
+    return out

@@ -88,11 +88,13 @@ class Scheduler:
 
 class JobLauncher:
     """Starts ``hitl finetune`` processes for the service (schedule and API trigger), one at a time from
-    here; ``stop`` ends a running one with SIGTERM (it records itself interrupted and resumes later)."""
+    here, with the service's data folder, database and ``[finetune]`` settings (passed as
+    ``HITL_FINETUNE``); ``stop`` ends a running one with SIGTERM (it records itself interrupted and
+    resumes later)."""
 
-    def __init__(self, data_dir: Path, database_url: str, niceness: int, promote: bool) -> None:
+    def __init__(self, data_dir: Path, database_url: str, settings) -> None:
         self.data_dir, self.database_url = Path(data_dir).resolve(), database_url
-        self.niceness, self.promote = niceness, promote
+        self.settings = settings  # server.settings.FinetuneSettings
         self.process: subprocess.Popen | None = None
         self._lock = threading.Lock()
 
@@ -107,20 +109,10 @@ class JobLauncher:
             if self.running():
                 log.warning("a fine-tuning job started by this service is still running: not starting another")
                 return None
-            cmd = [
-                sys.executable,
-                "-m",
-                "hitl.cli",
-                "finetune",
-                "--quiet",
-                "--trigger",
-                trigger,
-                "--data-dir",
-                str(self.data_dir),
-                "--database-url",
-                self.database_url,
-                "--promote" if self.promote else "--no-promote",
-            ]
+            cmd = [sys.executable, "-m", "hitl.cli", "finetune", "--quiet", "--trigger", trigger]
+            cmd += ["--data-dir", str(self.data_dir), "--database-url", self.database_url]
+            # the child lowers its own priority: no preexec_fn in a threaded server
+            cmd += ["--nice", str(self.settings.niceness)]
             if policy:
                 cmd += ["--policy", policy]
             if job_id is not None:
@@ -130,14 +122,9 @@ class JobLauncher:
             logs.mkdir(parents=True, exist_ok=True)
             stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
             out = open(logs / f"finetune-{stamp}-{trigger}.log", "ab")  # noqa: SIM115 - the child owns it
-            niceness = self.niceness
+            env = {**os.environ, "PYTHONUNBUFFERED": "1", "HITL_FINETUNE": self.settings.model_dump_json()}
             self.process = subprocess.Popen(
-                cmd,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                preexec_fn=(lambda: os.nice(niceness)) if niceness else None,  # noqa: PLW1509
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env
             )
             out.close()
             log.info("fine-tuning job started (%s), pid %d, log %s", trigger, self.process.pid, out.name)

@@ -54,6 +54,8 @@ class FinetuneSettings(BaseModel):
     niceness: int = Field(19, ge=0, le=19, description="CPU priority of the job's process below the fleet (os.nice)")
     promote: bool = Field(True, description="promote a version that passes the gate (false: leave it a candidate)")
     eval_episodes: int = Field(20, ge=1, le=1000, description="seeded autonomous episodes per evaluation task")
+    tolerance: float = Field(0.05, ge=0, lt=1, description="the gate: allowed success drop on the training task")
+    min_gain: float = Field(0.0, ge=0, lt=1, description="the gate: required success rise on the target tasks")
     eval_tasks: dict[str, list[str]] = Field(
         default_factory=dict,
         description="lineage -> the target tasks the gate compares on (default: the tasks its takeovers came from)",

@@ -169,3 +169,57 @@ class KinematicTask:
 
     def close(self):
         self.closed = True
+
+
+def finetunable_policy_folder(root, task: str = "lift-cube"):
+    """``tiny_policy`` as a policy folder a fine-tuning job can use: pretrained (on paper) on 5 synthetic
+    episodes under ``root/demos`` (4 training, 1 validation, as its config.json says), with a
+    calibration and a ``spread`` signal to recalibrate."""
+    from policy.signals import make_signal, save_signal
+    from storage import keys
+    from storage.episodes import EpisodeWriter
+
+    obs_dim = make_task(task).obs_spec.dim
+    demos = root / "demos"
+    rng = np.random.default_rng(1)
+    for i in range(5):
+        w = EpisodeWriter(demos / f"{task}_seed{i:06d}.mcap", {"task": task, "seed": i}, object_names=[])
+        for t in range(6):
+            act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [-1.0]]
+            w.write_step(
+                t,
+                rng.normal(size=obs_dim),
+                act,
+                act[:3],
+                np.array([0, 0, 0, 1.0]),
+                0.04,
+                t == 5,
+                keys.SOURCE_EXPERT,
+                {},
+            )
+        w.finish(True, 6, "success")
+    policy = tiny_policy(task)
+    folder = root / "policies" / task
+    names = sorted(p.name for p in demos.glob("*.mcap"))
+    dataset = {"folder": str(demos), "train_episodes": names[:4], "val_episodes": names[4:]}
+    save_policy(policy, folder, {"task": task, "dataset": dataset, "command": "tests.helpers"})
+    save_calibration(
+        folder, {"threshold": 1e9, "quantile": 0.95, "samples": 0, "uncertainty": {"num_samples": 16, "max_modes": 2}}
+    )
+    spread = make_signal("spread", policy, {"num_samples": 8})
+    spread.calibration = {"threshold": 1e9, "quantile": 0.95, "samples": 0, "spread_scale": 1.0}
+    save_signal(spread, folder, {})
+    return folder
+
+
+def write_segment(path, obs_dim: int, steps: int = 5, seed: int = 0, task: str = "lift-nut"):
+    """A closed takeover segment of ``steps`` random (observation, absolute action) pairs."""
+    from storage.segments import SegmentWriter
+
+    rng = np.random.default_rng(seed)
+    w = SegmentWriter(path, {"robot": 0, "task": task, "operator": "op"})
+    for _ in range(steps):
+        act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [1.0]]
+        w.write_step(rng.normal(size=obs_dim), {"dpos": [0, 0, 0.01]}, act, act, act[:3], [0, 0, 0, 1.0], 0.1)
+    w.close("closed", "hand-back")
+    return path

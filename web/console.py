@@ -148,7 +148,9 @@ class Console:
     # -- the tick ---------------------------------------------------------------------------------------
     def snapshot(self) -> FleetSnapshot:
         now = time.monotonic()  # before the reads: a claim made after ``now`` may be missing from them
-        return FleetSnapshot({v.id: v for v in self.fleet.views()}, tuple(self.fleet.queue.pending()), now)
+        return FleetSnapshot(
+            {v.id: v for v in self.fleet.views()}, tuple(self.fleet.queue.pending()), now, self.fleet.lineages()
+        )
 
     def _run(self) -> None:
         period = 1.0 / self.hz

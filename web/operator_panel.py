@@ -26,6 +26,7 @@ from web.panels import (
     TIMELINE_SERIES,
     FleetSnapshot,
     key_map_markdown,
+    lineage_markdown,
     overview_markdown,
     queue_row,
     robot_markdown,
@@ -122,6 +123,7 @@ class OperatorPanel:
                 gui.add_markdown(key_map_markdown())
         with tabs.add_tab("Fleet", viser.Icon.LIST):
             self.overview = gui.add_markdown("")
+            self.lineages = gui.add_markdown("")
             self.queue_folder = gui.add_folder("Assistance queue")
             with self.queue_folder:
                 self.queue_empty = gui.add_markdown("_No robot is waiting for help._")
@@ -244,6 +246,7 @@ class OperatorPanel:
         self._notifications(snap)
         self._heartbeat(snap)
         self._set(self.overview, "content", overview_markdown(snap, self.identity.name))
+        self._set(self.lineages, "content", lineage_markdown(snap.lineages))
         self._queue(snap)
         options = tuple(f"{rid} · {v.task}" for rid, v in sorted(snap.robots.items()))
         if self.robot_id is None and snap.robots:

@@ -14,6 +14,7 @@ import numpy as np
 
 from policy.signals.base import SignalError
 from server.assistance import AssistanceRequest
+from server.registry import LineageSummary
 from server.robot import RobotView
 from sim.tasks.open_drawer import DRAWER_NAMES
 
@@ -46,6 +47,7 @@ class FleetSnapshot:
     robots: dict[int, RobotView]
     queue: tuple[AssistanceRequest, ...]
     now: float = field(default_factory=time.monotonic)
+    lineages: tuple[LineageSummary, ...] = ()
 
     def request(self, robot_id: int) -> AssistanceRequest | None:
         return next((r for r in self.queue if r.robot_id == robot_id), None)
@@ -86,6 +88,29 @@ def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
             f"| {rid} | {v.task} | {mode} | {_num(score)} / {_num(threshold)}{flag} "
             f"| {_num(u)} / {_num(v.slot.threshold)} "
             f"| {v.successes} / {v.episodes_done} | {v.events} ({v.assisted_steps} steps) | v{v.slot.version} |"
+        )
+    return "\n".join(lines)
+
+
+def lineage_markdown(lineages: tuple[LineageSummary, ...]) -> str:
+    """Each policy lineage: the active version, its parent and why it is active, and the last
+    fine-tuning job (its stage while it runs, the gate's decision once done)."""
+    if not lineages:
+        return ""
+    lines = ["| Policy | Active | From | Last fine-tuning job |", "|---|---|---|---|"]
+    for ln in lineages:
+        if ln.job_id is None:
+            job = "none yet"
+        elif ln.job_status in ("queued", "running"):
+            job = f"#{ln.job_id} {ln.job_status}" + (f" · {ln.job_stage} {ln.job_progress:.0%}" if ln.job_stage else "")
+        elif ln.job_status == "succeeded":
+            verdict = "promoted" if ln.job_promoted else "kept as candidate"
+            job = f"#{ln.job_id} {verdict} ({ln.job_ended}): {ln.job_gate or ''}"
+        else:
+            job = f"#{ln.job_id} {ln.job_status}" + (f": {ln.job_error}" if ln.job_error else "")
+        extra = f" · {ln.candidates} candidate(s)" if ln.candidates else ""
+        lines.append(
+            f"| {ln.name} | {ln.active or '–'}{extra} | {ln.parent or '–'} · {ln.reason or ''} | {job[:160]} |"
         )
     return "\n".join(lines)
 

@@ -7,57 +7,21 @@ import json
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
-import numpy as np
 import pytest
 from sqlalchemy import select
 
-from policy.checkpoint import load_calibration, read_info, save_calibration, save_policy
+from policy.checkpoint import load_calibration, read_info
 from policy.finetune import FinetuneConfig
-from policy.signals import make_signal, save_signal
 from server import registry
 from server.db import FinetuneJob, PolicyVersion, SegmentRecord, make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.finetune_job import FinetuneRunner, JobBusy, JobRequest, parse_since
 from server.lease import FINETUNE_LEASE, acquire, release
 from sim.registry import make_task
-from storage import keys
-from storage.episodes import EpisodeWriter
-from storage.segments import SegmentWriter
-from tests.helpers import tiny_policy
+from tests.helpers import finetunable_policy_folder, write_segment
 
 TASK = "lift-cube"
 TINY = FinetuneConfig(steps=12, batch_size=8, checkpoint_every=5, eval_episodes=1, min_steps=1)
-
-
-def _demos(folder: Path, n: int, obs_dim: int) -> Path:
-    rng = np.random.default_rng(1)
-    for i in range(n):
-        w = EpisodeWriter(folder / f"{TASK}_seed{i:06d}.mcap", {"task": TASK, "seed": i}, object_names=[])
-        for t in range(6):
-            act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [-1.0]]
-            w.write_step(
-                t,
-                rng.normal(size=obs_dim),
-                act,
-                act[:3],
-                np.array([0, 0, 0, 1.0]),
-                0.04,
-                t == 5,
-                keys.SOURCE_EXPERT,
-                {},
-            )
-        w.finish(True, 6, "success")
-    return folder
-
-
-def _segment(path: Path, obs_dim: int, steps: int = 5, seed: int = 0) -> Path:
-    rng = np.random.default_rng(seed)
-    w = SegmentWriter(path, {"robot": 0, "task": "lift-nut", "operator": "op"})
-    for _ in range(steps):
-        act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [1.0]]
-        w.write_step(rng.normal(size=obs_dim), {"dpos": [0, 0, 0.01]}, act, act, act[:3], [0, 0, 0, 1.0], 0.1)
-    w.close("closed", "hand-back")
-    return path
 
 
 @pytest.fixture
@@ -66,33 +30,15 @@ def store(tmp_path):
     takeover segments and one corrupt one, all closed."""
     obs_dim = make_task(TASK).obs_spec.dim
     data_dir = tmp_path / "var"
-    demos = _demos(tmp_path / "demos", 5, obs_dim)
-    policy = tiny_policy(TASK)
-    folder = tmp_path / "policies" / "lift-cube"
-    names = sorted(p.name for p in demos.glob("*.mcap"))
-    save_policy(
-        policy,
-        folder,
-        {
-            "task": TASK,
-            "dataset": {"folder": str(demos), "train_episodes": names[:4], "val_episodes": names[4:]},
-            "command": "test",
-        },
-    )
-    save_calibration(
-        folder, {"threshold": 1.0, "quantile": 0.95, "samples": 0, "uncertainty": {"num_samples": 16, "max_modes": 2}}
-    )
-    spread = make_signal("spread", policy, {"num_samples": 8})
-    spread.calibration = {"threshold": 1.0, "quantile": 0.95, "samples": 0, "spread_scale": 1.0}
-    save_signal(spread, folder, {})
+    folder = finetunable_policy_folder(tmp_path, TASK)
     url = f"sqlite:///{data_dir / 'hitl.db'}"
     migrate(url)
     sessions = session_factory(make_engine(url))
     row = registry.register(sessions, folder, TASK, status="active")
     seg_dir = data_dir / "segments"
     seg_dir.mkdir(parents=True)
-    _segment(seg_dir / "good-1.mcap", obs_dim, seed=1)
-    _segment(seg_dir / "good-2.mcap", obs_dim, seed=2)
+    write_segment(seg_dir / "good-1.mcap", obs_dim, seed=1)
+    write_segment(seg_dir / "good-2.mcap", obs_dim, seed=2)
     (seg_dir / "broken.mcap").write_bytes(b"\x89MCAP0\r\n" + b"garbage" * 10)
     now = datetime.now(UTC)
     with sessions() as s:

@@ -123,3 +123,22 @@ def test_the_cli_lists_promotes_and_rolls_back(tmp_path):
         assert s.get(PolicyVersion, v2.id).status == "retired"
     text = run("list").stdout
     assert "policy@1" in text and "rolled back to policy@1" in text
+
+
+def test_a_restarted_fleet_serves_the_promoted_version_or_falls_back_when_it_is_gone(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=4)
+    v1 = registry.resolve(fleet.sessions, "policy")
+    folder = tiny_policy_folder(tmp_path / "policy-v2", "lift-cube", 1e9)
+    v2 = registry.register(fleet.sessions, folder, "lift-cube", parent=v1.id)
+    registry.promote(fleet.sessions, v2.ref)
+    fleet.stop()
+    again, _ = _fleet(tmp_path, threshold=1e9, horizon=4)  # the same settings and database: a restart
+    again.tick()
+    assert again.view(0).slot.version == v2.id and registry.resolve(again.sessions, "policy").id == v2.id
+    again.stop()
+    (folder / "model.safetensors").unlink()
+    third, _ = _fleet(tmp_path, threshold=1e9, horizon=4)
+    third.tick()
+    assert third.view(0).slot.version == v1.id  # the configured folder, not a service that cannot start
+    assert third.sync_policies() == []
+    third.stop()

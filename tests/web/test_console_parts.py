@@ -130,3 +130,37 @@ def test_the_goal_and_the_key_map_read_as_an_operator_needs_them():
     assert "W/A/S/D/Q/E" in keys  # left to the camera, and said so
     for key in ("| I / K |", "| J / L |", "| U / O |", "| N / M |", "| G |"):
         assert key in keys
+
+
+def test_the_fleet_tab_shows_each_lineage_and_its_last_job():
+    from server.registry import LineageSummary
+    from web.panels import lineage_markdown
+
+    assert lineage_markdown(()) == ""
+    idle = LineageSummary("lift-cube", "lift-cube@1", "configured", None, 1, 0)
+    running = LineageSummary(
+        "cup-stack", "cup-stack@2", "gate passed: ...", "cup-stack@1", 3, 1, 7, "running", "train", 0.4
+    )
+    done = LineageSummary(
+        "open-drawer",
+        "open-drawer@1",
+        "promoted",
+        None,
+        2,
+        1,
+        9,
+        "succeeded",
+        "done",
+        1.0,
+        "not better on open-drawer: 0.40 against 0.45",
+        False,
+        None,
+        "2026-11-24T03:12+00:00",
+    )
+    failed = LineageSummary("x", None, None, None, 1, 1, 3, "failed", "data", 0.02, None, None, "no usable sample")
+    text = lineage_markdown((idle, running, done, failed))
+    rows = text.splitlines()[2:]
+    assert rows[0] == "| lift-cube | lift-cube@1 | – · configured | none yet |"
+    assert "cup-stack@2 · 1 candidate(s)" in rows[1] and "#7 running · train 40%" in rows[1]
+    assert "#9 kept as candidate (2026-11-24T03:12+00:00): not better on open-drawer" in rows[2]
+    assert rows[3].endswith("| #3 failed: no usable sample |")

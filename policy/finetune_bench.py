@@ -1,0 +1,264 @@
+"""``hitl bench finetune``: the paper's fine-tuning figure on our lift tasks.
+
+From one pretrained lift policy: collect fine-tuning data on the unseen objects from each source,
+
+- ``takeover:<signal>``: the operator's steps (the scripted expert through the operator view) in
+  assisted rollouts where ``<signal>`` asks for help, with the demo fleet's hand-back rules
+  (continuous, cooldown 10), whole takeovers drawn in a seeded random order;
+- ``full-trajectory``: whole scripted-expert demonstrations, one after the other;
+
+then, for each source and each sample count K, fine-tune a copy of the policy on the first K samples
+(spread evenly over the unseen tasks) with the job's recipe (``policy.finetune``: 50/50 batches with
+the pretraining data, steps growing with K) and evaluate it autonomously through the controller on
+seeded episodes of the training object and of each unseen object. Every point is independent and
+starts from the same pretrained weights; results are cached per point under ``--cache``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from policy.assisted import AssistConfig, run_assisted
+from policy.checkpoint import load_policy, read_info
+from policy.finetune import FinetuneConfig, evaluate, finetune_policy, pretraining_split
+from storage import keys
+from storage.takeovers import TakeoverSet
+
+FULL = "full-trajectory"
+UNSEEN = ("lift-nut", "lift-hammer", "lift-hook")
+
+
+@dataclass(frozen=True)
+class FinetuneBenchConfig:
+    policy: str = "policies/lift-cube"
+    train_task: str = "lift-cube"
+    unseen: tuple[str, ...] = UNSEEN
+    sources: tuple[str, ...] = ("takeover:spread", "takeover:denoising", "takeover:random", FULL)
+    counts: tuple[int, ...] = (20, 50, 100, 200)
+    eval_episodes: int = 20
+    eval_seed: int = 50_000
+    collect_seed: int = 70_000
+    collect_rounds: int = 6  # waves of episodes per unseen task while collecting, at most
+    # the demo fleet's rules (configs/demo.toml): the operator keeps control while the signal wants help,
+    # then `cooldown` policy steps before the robot may ask again. (With budgeted 4-step takeovers the
+    # operator only ever corrects the approach: no takeover of 4 steps reaches the grasp.)
+    hand_back: str = "continuous"
+    budget: int = 4
+    cooldown: int = 10
+    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+
+    @classmethod
+    def quick(cls, **kw) -> FinetuneBenchConfig:
+        base = {"sources": ("takeover:spread", FULL), "counts": (50, 100), "eval_episodes": 10}
+        return cls(**(base | kw))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["finetune"] = self.finetune.to_dict()
+        return d
+
+    def digest(self, *parts) -> str:
+        doc = json.dumps([self.to_dict(), *parts], sort_keys=True, default=str)
+        return hashlib.sha256(doc.encode()).hexdigest()[:16]
+
+
+@dataclass
+class Samples:
+    """Per unseen task, the runs of consecutive (observation, action) pairs, in collection order."""
+
+    runs: dict[str, list[tuple[np.ndarray, np.ndarray]]]
+
+    def save(self, path: Path) -> None:
+        arrays = {}
+        for t, runs in self.runs.items():
+            arrays[f"{t}/obs"] = np.concatenate([o for o, _ in runs]) if runs else np.zeros((0, 0), np.float32)
+            arrays[f"{t}/act"] = np.concatenate([a for _, a in runs]) if runs else np.zeros((0, 10), np.float32)
+            arrays[f"{t}/len"] = np.array([len(o) for o, _ in runs], np.int64)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **arrays)
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> Samples:
+        runs: dict[str, list] = {}
+        with np.load(path) as z:
+            for t in dict.fromkeys(k.split("/")[0] for k in z.files):
+                ends = np.cumsum(z[f"{t}/len"])
+                starts = ends - z[f"{t}/len"]
+                runs[t] = [(z[f"{t}/obs"][a:b], z[f"{t}/act"][a:b]) for a, b in zip(starts, ends, strict=True)]
+        return cls(runs)
+
+    def count(self) -> dict[str, int]:
+        return {t: sum(len(o) for o, _ in r) for t, r in self.runs.items()}
+
+    def first(self, k: int) -> TakeoverSet:
+        """The first ``k`` samples, ``k / len(tasks)`` from each task (the remainder to the first ones),
+        whole runs in order, the last one cut."""
+        tasks = list(self.runs)
+        share = [k // len(tasks) + (1 if i < k % len(tasks) else 0) for i in range(len(tasks))]
+        obs, act, ends, total = [], [], [], 0
+        for task, want in zip(tasks, share, strict=True):
+            left = want
+            for o, a in self.runs[task]:
+                if left <= 0:
+                    break
+                o, a = o[:left], a[:left]
+                obs.append(o)
+                act.append(a)
+                total += len(o)
+                ends.append(total)
+                left -= len(o)
+            if left > 0:
+                raise ValueError(f"only {want - left} samples of {task} collected, {want} wanted")
+        obs_a, act_a = np.concatenate(obs), np.concatenate(act)
+        return TakeoverSet(obs_a, act_a, np.zeros((len(obs_a), 7), np.float32), np.array(ends, np.int64))
+
+
+def _runs_from_episodes(episodes, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The operator's takeovers (runs of consecutive operator steps) in a seeded random order: the first
+    K samples are then a draw of whole takeovers from all the episodes, wherever in them the signal asked
+    (in the order a fleet records them, K samples from robots running side by side would all be their
+    episodes' first steps)."""
+    runs = []
+    for ep in episodes:
+        flags = np.asarray(ep.operator, bool)
+        at = 0
+        for start in np.flatnonzero(flags & ~np.r_[False, flags[:-1]]):
+            n = int(np.argmin(np.r_[flags[start:], False]))  # length of this run of operator steps
+            chunk = ep.takeover_pairs[at : at + n]
+            at += n
+            runs.append((np.stack([p[0] for p in chunk]), np.stack([p[1] for p in chunk])))
+    order = np.random.default_rng(seed).permutation(len(runs))
+    return [runs[i] for i in order]
+
+
+def collect(
+    policy, policy_dir: str, source: str, cfg: FinetuneBenchConfig, need: int, cache: Path, progress: bool
+) -> Samples:
+    """At least ``need`` samples per unseen task from ``source`` (or as many as ``collect_rounds`` give);
+    expert demonstrations are recorded once under ``cache``."""
+    from policy.signals import load_signal
+    from sim.demos import record_demos
+    from storage.dataset import DatasetConfig, load_dataset
+
+    runs: dict[str, list] = {}
+    for ti, task in enumerate(cfg.unseen):
+        got, runs[task] = 0, []
+        for r in range(cfg.collect_rounds):
+            seeds = list(range(cfg.collect_seed + 1000 * ti + 16 * r, cfg.collect_seed + 1000 * ti + 16 * (r + 1)))
+            if source == FULL:
+                folder = cache / "demos" / task / f"seed{seeds[0]}"
+                if not any(folder.glob("*.mcap")):
+                    record_demos(task, len(seeds), folder, seed=seeds[0], progress=progress)
+                ds = load_dataset(folder, DatasetConfig(val_fraction=0.0))
+                new = [(ds.obs[s:e], ds.actions[s:e]) for s, e in zip(ds.episode_starts, ds.episode_ends, strict=True)]
+            else:
+                signal = load_signal(policy, policy_dir, source.split(":", 1)[1])
+                assist = AssistConfig(
+                    mode=cfg.hand_back, budget=cfg.budget, cooldown=cfg.cooldown, n_envs=4, seed=cfg.collect_seed
+                )
+                episodes, _ = run_assisted(policy, task, seeds, signal, config=assist, progress=progress)
+                new = _runs_from_episodes(episodes, seeds[0])
+            runs[task] += new
+            got += sum(len(o) for o, _ in new)
+            if got >= need:
+                break
+    return Samples(runs)
+
+
+def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune", progress: bool = True) -> dict:
+    """Every (source, count) point, plus the pretrained policy's own success; JSON-ready."""
+    cache = Path(cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    parent, info = load_policy(cfg.policy)
+    pre_train, _, _ = pretraining_split(parent, info, info["dataset"]["folder"])
+    tasks = [cfg.train_task, *cfg.unseen]
+    start = time.perf_counter()
+
+    def cached(key: str, compute):
+        path = cache / f"{key}.json"
+        if path.is_file():
+            return json.loads(path.read_text())
+        value = compute()
+        path.write_text(json.dumps(value) + "\n")
+        return value
+
+    def success(policy) -> dict:
+        res = evaluate(policy, tasks, cfg.eval_episodes, cfg.eval_seed, progress)
+        return {t: r.to_dict() for t, r in res.items()}
+
+    base_key = "pretrained-" + cfg.digest("pretrained", tasks, cfg.eval_episodes, cfg.eval_seed)
+    pretrained = cached(base_key, lambda: success(parent))
+    need = -(-max(cfg.counts) // len(cfg.unseen))
+    points, skipped, collected = [], {}, {}
+    todo = [(s, k) for s in cfg.sources for k in cfg.counts]
+    bar = tqdm(todo, desc="bench finetune", unit="point", disable=not progress)
+    samples: dict[str, Samples] = {}
+    for source, k in bar:
+        bar.set_postfix(source=source, k=k)
+        if source in skipped:
+            continue
+        if source not in samples:
+            what = [
+                cfg.policy,
+                cfg.unseen,
+                cfg.collect_seed,
+                cfg.collect_rounds,
+                cfg.hand_back,
+                cfg.budget,
+                cfg.cooldown,
+                source,
+                need,
+            ]
+            digest = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
+            stored = cache / f"samples-{source.replace(':', '_')}-{digest}.npz"
+            try:
+                samples[source] = (
+                    Samples.load(stored)
+                    if stored.is_file()
+                    else collect(parent, cfg.policy, source, cfg, need, cache, progress)
+                )
+            except Exception as exc:  # noqa: BLE001 - a signal that is not trained next to this policy
+                skipped[source] = f"{type(exc).__name__}: {exc}"
+                continue
+            samples[source].save(stored)
+            collected[source] = samples[source].count()
+        key = f"point-{source.replace(':', '_')}-{k}-" + cfg.digest(source, k, tasks)
+
+        def compute(source=source, k=k) -> dict:
+            try:
+                data = samples[source].first(k)
+            except ValueError as exc:
+                return {"error": str(exc)}
+            arrays = data.arrays(parent.config.obs_horizon, parent.config.action_horizon)
+            child, history = finetune_policy(parent, arrays, pre_train, cfg.finetune, progress=False)
+            return {"steps": history["steps"], "seconds": round(history["seconds"], 1), "success": success(child)}
+
+        result = cached(key, compute)
+        points.append({"source": source, "samples": k, **result})
+    bar.close()
+    return {
+        "benchmark": "finetune",
+        "policy": str(cfg.policy),
+        "trained_on": info.get("task"),
+        "config": cfg.to_dict(),
+        "pretrained": pretrained,
+        "points": points,
+        "collected": collected,
+        "skipped_sources": skipped,
+        "seconds": round(time.perf_counter() - start, 1),
+        "pretraining": {"folder": info["dataset"]["folder"], "samples": int(len(pre_train[keys.OBS]))},
+        "policy_info": {"command": read_info(cfg.policy).get("command")},
+    }
+
+
+def unseen_rate(result: dict, cfg_unseen: tuple[str, ...]) -> float:
+    """Mean success over the unseen tasks of one ``success`` dict."""
+    return float(np.mean([result[t]["success_rate"] for t in cfg_unseen]))

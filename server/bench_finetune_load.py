@@ -1,0 +1,110 @@
+"""``hitl bench finetune-load``: the fleet's control rate while a fine-tuning job runs beside it.
+
+The real service (``LocalService``) with a fleet of autonomous robots; the control rate is measured
+before, while the service's own ``JobLauncher`` runs ``hitl finetune`` (a separate process at the
+configured niceness, as the nightly schedule starts it), and after. The job fine-tunes the bundled
+lift policy on a few expert episodes of an unseen object (``--source full-episodes``): the same
+training, recalibration and evaluation work as on takeover segments.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from server.bench_api import _measure, _wait_stepping, _Window
+from server.local_service import LocalService
+
+
+def bench_finetune_load(
+    robots: int = 8,
+    task: str = "lift-cube",
+    control_hz: float = 10.0,
+    idle_seconds: float = 20.0,
+    seconds: float = 60.0,
+    niceness: int = 19,
+    demo_task: str = "lift-hammer",
+    demo_episodes: int = 3,
+    eval_episodes: int = 4,
+    progress: bool = True,
+) -> dict:
+    from server.db import make_engine, migrate, session_factory
+    from server.settings import FinetuneSettings, RobotGroup, Settings
+    from sim.demos import record_demos
+
+    with tempfile.TemporaryDirectory(prefix="hitl-bench-finetune-") as tmp:
+        demos = Path(tmp) / "demos"
+        record_demos(demo_task, demo_episodes, demos, seed=90_000, progress=progress)
+        settings = Settings(
+            data_dir=Path(tmp) / "var",
+            control_hz=control_hz,
+            robots=[RobotGroup(task=task, count=robots)],
+            assistance=False,
+            console=False,
+            finetune=FinetuneSettings(schedule=None, niceness=niceness, promote=False),
+        )
+        settings.data_dir.mkdir(parents=True)
+        migrate(settings.db_url)
+        make_engine(settings.db_url).dispose()
+        bar = tqdm(
+            total=2 * idle_seconds + seconds,
+            desc="bench finetune-load",
+            disable=not progress,
+            bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s",
+        )
+        try:
+            with LocalService(settings, Path(tmp) / "server.log") as svc:
+                fleet, launcher = svc.app.state.fleet, svc.app.state.launcher
+                _wait_stepping(fleet)
+                time.sleep(3.0)
+                idle = _measure(_Window(fleet), idle_seconds, bar)
+                lineage = fleet.robots[0].slot.lineage
+                proc = launcher.launch(
+                    "bench",
+                    lineage,
+                    extra=[
+                        "--source",
+                        "full-episodes",
+                        "--episodes",
+                        str(demos),
+                        "--eval-episodes",
+                        str(eval_episodes),
+                        "--eval-tasks",
+                        demo_task,
+                    ],
+                )
+                started = time.monotonic()
+                loaded = _measure(_Window(fleet, proc.pid), seconds, bar)
+                job_running_whole_window = proc.poll() is None
+                launcher.stop()  # a job still running is interrupted (it would resume at the next run)
+                job_seconds = time.monotonic() - started
+                idle_after = _measure(_Window(fleet), idle_seconds, bar)
+                sessions = session_factory(make_engine(settings.db_url))
+                from server.db import FinetuneJob
+
+                with sessions() as s:
+                    job = s.query(FinetuneJob).order_by(FinetuneJob.id.desc()).first()
+                    job_doc = {"status": job.status, "stage": job.stage, "progress": job.progress} if job else None
+        finally:
+            bar.close()
+    reference = (idle["env_steps_per_s"] + idle_after["env_steps_per_s"]) / 2
+    return {
+        "benchmark": "finetune-load",
+        "config": {
+            "robots": robots,
+            "task": task,
+            "control_hz": control_hz,
+            "job_niceness": niceness,
+            "job": f"hitl finetune --source full-episodes ({demo_episodes} {demo_task} demos), "
+            f"{eval_episodes} evaluation episodes per task",
+        },
+        "idle": idle,
+        "during_job": loaded,
+        "idle_after": idle_after,
+        "reference_env_steps_per_s": reference,
+        "cost_share": 1.0 - loaded["env_steps_per_s"] / reference,
+        "job": {**(job_doc or {}), "running_whole_window": job_running_whole_window, "seconds": job_seconds},
+    }
