@@ -200,6 +200,8 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         given["counts"] = tuple(args.counts)
     if args.ratio is not None:
         given["finetune"] = FinetuneConfig(ratio=args.ratio)
+    if args.return_after is not None:
+        given["return_after"] = args.return_after
     cfg = FinetuneBenchConfig.quick(**given) if args.quick else FinetuneBenchConfig(**given)
     result = run_bench(cfg, args.cache, progress=not args.quiet)
     summary = summarize(result)
@@ -210,9 +212,10 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         "machine": {"platform": platform.platform(), "date": datetime.date.today().isoformat()},
     }
     if args.report:
-        figure = plot(summary, Path(args.figures) / ("finetune-quick.png" if args.quick else "finetune.png"))
+        section = args.section or ("finetune-quick" if args.quick else "finetune")
+        figure = plot(summary, Path(args.figures) / f"{section}.png")
         body = markdown(result, summary, figure, Path(args.report), command)
-        replace_section(Path(args.report), "finetune-quick" if args.quick else "finetune", body)
+        replace_section(Path(args.report), section, body)
     print(json.dumps(result, indent=None if args.json else 2))
     return 0
 
@@ -229,6 +232,10 @@ def register_finetune(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--counts", nargs="+", type=int, default=None, help="sample counts K (default 20 50 100 200)")
     q.add_argument("--episodes", type=int, default=None, help="evaluation episodes per task (default 20)")
     q.add_argument("--ratio", type=float, default=None, help="takeover share of each mini-batch (default 0.5)")
+    q.add_argument(
+        "--return-after", type=int, default=None, help="the operator hands back after N calm steps (default 1)"
+    )
+    q.add_argument("--section", default=None, help="the report section's name (default finetune / finetune-quick)")
     q.add_argument("--cache", default="runs/bench-finetune")
     q.add_argument("--report", default=None, help="write the table into this markdown file (docs/benchmarks.md)")
     q.add_argument("--figures", default="docs/img")

@@ -5,7 +5,7 @@ Both work on the service's metadata store and data folder (``--config``, ``HITL_
 hot-swaps at each robot's next episode.
 
 ``hitl finetune`` exit codes: 0 done (or nothing to do), 1 a job failed, 2 bad input (nothing
-changed), 3 another job holds the lease (try later).
+changed), 3 another job holds the lease (try later), 130 interrupted (SIGTERM, Ctrl-C: resumable).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import signal
 import sys
 from pathlib import Path
 
-EXIT_FAILED, EXIT_BAD_INPUT, EXIT_BUSY = 1, 2, 3
+EXIT_FAILED, EXIT_BAD_INPUT, EXIT_BUSY, EXIT_INTERRUPTED = 1, 2, 3, 130
 
 
 def _store(args: argparse.Namespace):
@@ -124,6 +124,23 @@ def _finetune_config(args: argparse.Namespace, settings):
     return FinetuneConfig(**given)
 
 
+def _command_line(argv: list[str]) -> str:
+    """The command as recorded in the registry (readable by viewers): a database URL is left out."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            out.append("***")
+            skip = False
+        elif a == "--database-url":
+            out.append(a)
+            skip = True
+        elif a.startswith("--database-url="):
+            out.append("--database-url=***")
+        else:
+            out.append(a)
+    return "hitl " + " ".join(shlex.quote(a) for a in out)
+
+
 def _interrupted(signum, frame) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
 
@@ -140,6 +157,8 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.nice:
         os.nice(args.nice)  # below the fleet: the service starts its jobs this way
+    if args.idle_priority:  # Linux SCHED_IDLE: the CPU only when nothing else wants it
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     try:
         settings, sessions = _store(args)
         torch.set_num_threads(args.threads or settings.finetune.threads)
@@ -153,7 +172,7 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
             promote=settings.finetune.promote if args.promote is None else args.promote,
             config=_finetune_config(args, settings),
             trigger=args.trigger,
-            command="hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+            command=_command_line(sys.argv[1:]),
             job_id=args.job,
         )
         runner = FinetuneRunner(
@@ -169,6 +188,9 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
     except (JobBusy, LeaseLost) as exc:
         print(f"hitl finetune: {exc}", file=sys.stderr)
         return EXIT_BUSY
+    except KeyboardInterrupt:
+        print("hitl finetune: interrupted; the job resumes from its last checkpoint at the next run", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except (ServiceError, ValueError, FileNotFoundError, KeyError) as exc:
         return _fail("finetune", exc)
     return EXIT_FAILED if any(r["status"] != "succeeded" for r in results) else 0
@@ -225,6 +247,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--nice", type=int, default=0, help="lower this process's CPU priority by N (os.nice)")
+    p.add_argument(
+        "--idle-priority", action="store_true", help="run under SCHED_IDLE: only on CPU time nothing else wants"
+    )
     p.add_argument("--trigger", default="cli", help=argparse.SUPPRESS)
     p.add_argument("--job", type=int, default=None, help=argparse.SUPPRESS)  # a queued job row (the API's)
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -79,6 +79,7 @@ def _cmd_bench_finetune_load(args: argparse.Namespace) -> int:
         idle_seconds=args.idle_seconds,
         seconds=args.seconds,
         niceness=args.niceness,
+        idle_priority=not args.no_idle_priority,
         progress=not args.quiet,
     )
     text = json.dumps(result, indent=None if args.json else 2)
@@ -186,6 +187,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--idle-seconds", type=float, default=20.0, help="measured before and after the job")
     q.add_argument("--seconds", type=float, default=60.0, help="measured while the job runs")
     q.add_argument("--niceness", type=int, default=19, help="the job's CPU priority (the setting)")
+    q.add_argument("--no-idle-priority", action="store_true", help="nice only, without SCHED_IDLE (the setting)")
     q.add_argument("--out", default=None, help="also write the JSON here")
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")

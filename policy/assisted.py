@@ -12,8 +12,8 @@ takeovers.
 Modes, as in the paper: ``budgeted`` gives the operator ``budget`` steps per assistance event;
 ``continuous`` keeps the operator in control until the driver no longer wants help (for
 ``thrifty`` this is its switch-back rule; for the others the score back under the threshold): the
-controller's ``continuous`` with ``return_after = 1``, since the simulated operator never hands back
-on its own.
+controller's ``continuous`` with ``return_after = 1`` (``AssistConfig.return_after``: more calm steps
+keep the operator in control longer), since the simulated operator never hands back on its own.
 On hand-back the policy restarts from the current pose with a fresh observation history.
 """
 
@@ -49,13 +49,14 @@ class AssistConfig:
     n_envs: int = 4
     seed: int = 0
     batch_invariant: bool = False  # the controller's robot-by-robot mode (to compare with the service)
+    return_after: int = 1  # continuous mode: hand back after this many calm operator steps (the paper's: 1)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if not (isinstance(self.cooldown, int) and self.cooldown >= 0):
             raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
-        for name in ("budget", "n_envs"):
+        for name in ("budget", "n_envs", "return_after"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
@@ -143,7 +144,7 @@ def run_assisted(
         ControllerConfig(
             hand_back=cfg.mode,
             budget=cfg.budget,
-            return_after=1 if cfg.mode == "continuous" else None,
+            return_after=cfg.return_after if cfg.mode == "continuous" else None,
             cooldown=cfg.cooldown,
             watchdog=cfg.watchdog,
             seed=cfg.seed,

@@ -134,8 +134,8 @@ def finetune_policy(
 ) -> tuple[DiffusionPolicy, dict]:
     """Trains a copy of ``parent`` (its weights and normalizers) on ``takeover`` mixed with ``pretrain``
     ({OBS: (M, H, obs_dim), ACTION: (M, C, 10)}, absolute actions). With ``work_dir``, a training state is
-    saved there every ``checkpoint_every`` steps and an existing one is resumed. Returns (EMA policy,
-    history)."""
+    saved there every ``checkpoint_every`` steps (after ``on_checkpoint``, which may raise to stop the
+    run first) and an existing one is resumed. Returns (EMA policy, history)."""
     n_take = len(takeover[keys.OBS])
     if n_take == 0:
         raise FinetuneDataError("no takeover samples to fine-tune on")
@@ -147,10 +147,10 @@ def finetune_policy(
     resume = TrainState.load(work_dir) if work_dir is not None and TrainState.exists(work_dir) else None
 
     def checkpoint(state: TrainState) -> None:
+        if on_checkpoint is not None:  # first: a job that lost its lease must not overwrite the state
+            on_checkpoint(state)
         if work_dir is not None:
             state.save(work_dir)
-        if on_checkpoint is not None:
-            on_checkpoint(state)
 
     ema, history = train_policy(
         policy,

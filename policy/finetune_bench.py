@@ -52,6 +52,7 @@ class FinetuneBenchConfig:
     hand_back: str = "continuous"
     budget: int = 4
     cooldown: int = 10
+    return_after: int = 1  # continuous: the operator hands back after this many steps the signal is calm
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
 
     @classmethod
@@ -162,7 +163,12 @@ def collect(
             else:
                 signal = load_signal(policy, policy_dir, source.split(":", 1)[1])
                 assist = AssistConfig(
-                    mode=cfg.hand_back, budget=cfg.budget, cooldown=cfg.cooldown, n_envs=4, seed=cfg.collect_seed
+                    mode=cfg.hand_back,
+                    budget=cfg.budget,
+                    cooldown=cfg.cooldown,
+                    return_after=cfg.return_after,
+                    n_envs=4,
+                    seed=cfg.collect_seed,
                 )
                 episodes, _ = run_assisted(policy, task, seeds, signal, config=assist, progress=progress)
                 new = _runs_from_episodes(episodes, seeds[0])
@@ -206,17 +212,8 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
         if source in skipped:
             continue
         if source not in samples:
-            what = [
-                cfg.policy,
-                cfg.unseen,
-                cfg.collect_seed,
-                cfg.collect_rounds,
-                cfg.hand_back,
-                cfg.budget,
-                cfg.cooldown,
-                source,
-                need,
-            ]
+            what = [cfg.policy, cfg.unseen, cfg.collect_seed, cfg.collect_rounds, cfg.hand_back, cfg.budget]
+            what += [cfg.cooldown, source, need] + ([cfg.return_after] if cfg.return_after != 1 else [])
             digest = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
             stored = cache / f"samples-{source.replace(':', '_')}-{digest}.npz"
             try:

@@ -83,7 +83,8 @@ def markdown(result: dict, summary: dict, figure: Path | None, report: Path, com
         f"on the first K samples of its source (K/{len(cfg['unseen'])} per unseen task) with 50/50 mini-batches "
         f"against the pretraining set, then rolls out {cfg['eval_episodes']} seeded episodes per task "
         f"(seeds from {cfg['eval_seed']}) through the controller. Takeover data: the scripted expert as operator, "
-        f"{cfg['hand_back']} hand-back, cooldown {cfg['cooldown']}.",
+        f"{cfg['hand_back']} hand-back (back after {cfg.get('return_after', 1)} calm step(s)), "
+        f"cooldown {cfg['cooldown']}.",
         "",
         "| source | samples | training object | unseen objects | steps |",
         "|---|---|---|---|---|",

@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -56,7 +57,7 @@ class TrainConfig:
 class TrainState:
     """Everything needed to continue a training run exactly where it stopped: the next step, the
     weights, the EMA weights, the optimizer's moments, the sampling generator and the loss history.
-    Saved as ``train_state.safetensors`` + ``train_state.json`` (no pickle)."""
+    Saved as ``train_state.safetensors`` + ``train_state.json`` (no pickle) in a folder per save."""
 
     step: int
     model: dict[str, torch.Tensor]
@@ -68,11 +69,14 @@ class TrainState:
 
     TENSORS = "train_state.safetensors"
     META = "train_state.json"
+    LATEST = "latest"  # names the complete state folder to resume from
 
     def save(self, folder: str | Path) -> Path:
-        """Writes both files atomically (a crash mid-save leaves the previous state readable)."""
+        """Writes ``folder/step-<N>/`` (both files), then points ``folder/latest`` at it with one atomic
+        rename: a crash at any moment leaves the previous complete state to resume from."""
         folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
+        target = folder / f"step-{self.step:08d}"
+        target.mkdir(parents=True, exist_ok=True)
         tensors = {f"model.{k}": v for k, v in self.model.items()}
         tensors |= {f"ema.{k}": v for k, v in self.ema.items()}
         tensors["generator"] = self.generator
@@ -86,24 +90,36 @@ class TrainState:
             "history": self.history,
             "param_groups": self.optimizer["param_groups"],
         }
-        for name, write in (
-            (self.TENSORS, lambda tmp: save_file(tensors, str(tmp))),
-            (self.META, lambda tmp: tmp.write_text(json.dumps(meta) + "\n")),
-        ):
-            tmp = folder / (name + ".tmp")
-            write(tmp)
-            tmp.replace(folder / name)
-        return folder
+        save_file(tensors, str(target / self.TENSORS))
+        (target / self.META).write_text(json.dumps(meta) + "\n")
+        pointer = folder / (self.LATEST + ".tmp")
+        pointer.write_text(target.name + "\n")
+        pointer.replace(folder / self.LATEST)
+        for old in folder.glob("step-*"):
+            if old != target:
+                shutil.rmtree(old, ignore_errors=True)
+        return target
+
+    @classmethod
+    def _latest(cls, folder: str | Path) -> Path | None:
+        pointer = Path(folder) / cls.LATEST
+        if not pointer.is_file():
+            return None
+        target = Path(folder) / pointer.read_text().strip()
+        return target if (target / cls.TENSORS).is_file() and (target / cls.META).is_file() else None
 
     @classmethod
     def exists(cls, folder: str | Path) -> bool:
-        return (Path(folder) / cls.TENSORS).is_file() and (Path(folder) / cls.META).is_file()
+        return cls._latest(folder) is not None
 
     @classmethod
     def load(cls, folder: str | Path) -> TrainState:
-        folder = Path(folder)
-        tensors = load_file(str(folder / cls.TENSORS))
-        meta = json.loads((folder / cls.META).read_text())
+        """The latest complete state saved under ``folder``."""
+        target = cls._latest(folder)
+        if target is None:
+            raise FileNotFoundError(f"no complete training state in {folder}")
+        tensors = load_file(str(target / cls.TENSORS))
+        meta = json.loads((target / cls.META).read_text())
         model = {k.removeprefix("model."): v for k, v in tensors.items() if k.startswith("model.")}
         ema = {k.removeprefix("ema."): v for k, v in tensors.items() if k.startswith("ema.")}
         state: dict[int, dict] = {}

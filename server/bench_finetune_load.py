@@ -10,6 +10,7 @@ training, recalibration and evaluation work as on takeover segments.
 from __future__ import annotations
 
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -26,9 +27,10 @@ def bench_finetune_load(
     idle_seconds: float = 20.0,
     seconds: float = 60.0,
     niceness: int = 19,
+    idle_priority: bool = True,
     demo_task: str = "lift-hammer",
     demo_episodes: int = 3,
-    eval_episodes: int = 4,
+    eval_episodes: int = 12,
     progress: bool = True,
 ) -> dict:
     from server.db import make_engine, migrate, session_factory
@@ -44,7 +46,7 @@ def bench_finetune_load(
             robots=[RobotGroup(task=task, count=robots)],
             assistance=False,
             console=False,
-            finetune=FinetuneSettings(schedule=None, niceness=niceness, promote=False),
+            finetune=FinetuneSettings(schedule=None, niceness=niceness, idle_priority=idle_priority, promote=False),
         )
         settings.data_dir.mkdir(parents=True)
         migrate(settings.db_url)
@@ -77,17 +79,20 @@ def bench_finetune_load(
                     ],
                 )
                 started = time.monotonic()
+                ended: list[float] = []
+                threading.Thread(target=lambda: (proc.wait(), ended.append(time.monotonic())), daemon=True).start()
                 loaded = _measure(_Window(fleet, proc.pid), seconds, bar)
-                job_running_whole_window = proc.poll() is None
+                job_running_whole_window = not ended
                 launcher.stop()  # a job still running is interrupted (it would resume at the next run)
-                job_seconds = time.monotonic() - started
+                job_seconds = (ended[0] if ended else time.monotonic()) - started
                 idle_after = _measure(_Window(fleet), idle_seconds, bar)
-                sessions = session_factory(make_engine(settings.db_url))
                 from server.db import FinetuneJob
 
-                with sessions() as s:
+                engine = make_engine(settings.db_url)
+                with session_factory(engine)() as s:
                     job = s.query(FinetuneJob).order_by(FinetuneJob.id.desc()).first()
                     job_doc = {"status": job.status, "stage": job.stage, "progress": job.progress} if job else None
+                engine.dispose()
         finally:
             bar.close()
     reference = (idle["env_steps_per_s"] + idle_after["env_steps_per_s"]) / 2
@@ -98,6 +103,7 @@ def bench_finetune_load(
             "task": task,
             "control_hz": control_hz,
             "job_niceness": niceness,
+            "job_sched_idle": idle_priority,
             "job": f"hitl finetune --source full-episodes ({demo_episodes} {demo_task} demos), "
             f"{eval_episodes} evaluation episodes per task",
         },
@@ -106,5 +112,6 @@ def bench_finetune_load(
         "idle_after": idle_after,
         "reference_env_steps_per_s": reference,
         "cost_share": 1.0 - loaded["env_steps_per_s"] / reference,
+        # the job's own run time: when shorter than the window, part of the window had no job beside it
         "job": {**(job_doc or {}), "running_whole_window": job_running_whole_window, "seconds": job_seconds},
     }

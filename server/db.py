@@ -14,11 +14,13 @@ from sqlalchemy import (
     DateTime,
     Float,
     ForeignKey,
+    Index,
     Integer,
     String,
     UniqueConstraint,
     create_engine,
     event,
+    text,
 )
 from sqlalchemy.engine import Engine
 from sqlalchemy.ext.compiler import compiles
@@ -86,7 +88,17 @@ class PolicyVersion(Base):
     status (the promotion gate's decision, a promote or rollback)."""
 
     __tablename__ = "policy_versions"
-    __table_args__ = (UniqueConstraint("name", "version", name="uq_policy_versions_name_version"),)
+    __table_args__ = (
+        UniqueConstraint("name", "version", name="uq_policy_versions_name_version"),
+        # at most one active version per lineage, whatever writes at the same time (CLI, API, the job)
+        Index(
+            "uq_policy_versions_one_active",
+            "name",
+            unique=True,
+            sqlite_where=text("status = 'active'"),
+            postgresql_where=text("status = 'active'"),
+        ),
+    )
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     name: Mapped[str] = mapped_column(String(256))
     version: Mapped[int] = mapped_column(Integer, default=1)

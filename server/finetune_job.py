@@ -61,7 +61,10 @@ def parse_since(text: str) -> timedelta:
     m = _SINCE.match(text or "")
     if m is None or float(m[1]) <= 0:
         raise ValueError(f"--since {text!r}: expected a positive duration like 30m, 24h, 7d or 2w")
-    return timedelta(seconds=float(m[1]) * _UNITS[m[2]])
+    try:
+        return timedelta(seconds=float(m[1]) * _UNITS[m[2]])
+    except OverflowError as exc:
+        raise ValueError(f"--since {text!r}: too long") from exc
 
 
 class JobBusy(RuntimeError):
@@ -209,7 +212,13 @@ class FinetuneRunner:
     def _job_row(self, plan: Plan, request: JobRequest) -> tuple[int, bool]:
         """(job id, resumed): an unfinished job of the lineage on the same parent and data is resumed; other
         unfinished ones (their holder is gone: we hold the lease) are marked interrupted."""
-        key = {"segment_ids": plan.segment_ids, "source": request.source, "episodes": str(plan.episodes or "")}
+        key = {
+            "segment_ids": plan.segment_ids,
+            "source": request.source,
+            "episodes": str(plan.episodes or ""),
+            "pretrain_data": str(request.pretrain_data or ""),
+            "train_config": {k: v for k, v in request.config.to_dict().items() if not k.startswith("eval")},
+        }
         with self.sessions() as s:
             stale = list(
                 s.scalars(
@@ -223,9 +232,12 @@ class FinetuneRunner:
                 same = job.parent_id == plan.parent.id and {k: (job.data or {}).get(k) for k in key} == key
                 if resumable is None and same and job.work_dir:
                     resumable = job
-                elif job.status == "running":
-                    job.status, job.ended_at = "interrupted", utcnow()
-                    job.error = job.error or "its process stopped without finishing (lease expired)"
+                    continue
+                # superseded: other data or settings; it can never resume, so its checkpoints go
+                job.status, job.ended_at = "interrupted", job.ended_at or utcnow()
+                job.error = f"superseded by a run on other data or settings ({job.error or 'not finished'})"[:4000]
+                if job.work_dir:
+                    shutil.rmtree(self.data_dir / job.work_dir / "train", ignore_errors=True)
             queued = s.get(FinetuneJob, request.job_id) if request.job_id is not None else None
             if resumable is not None:
                 job, resumed = resumable, True
@@ -494,7 +506,14 @@ class FinetuneRunner:
             last = max(
                 [r.version for r in s.scalars(select(PolicyVersion).where(PolicyVersion.name == lineage))], default=0
             )
-        final = self.data_dir / "policies" / lineage / f"v{last + 1}"
+        n = last + 1
+        while True:
+            final = self.data_dir / "policies" / lineage / f"v{n}"
+            with self.sessions() as s:
+                taken = s.scalars(select(PolicyVersion.id).where(PolicyVersion.path == str(final.resolve()))).first()
+            if taken is None:
+                break
+            n += 1  # a folder of that name is registered (another lineage layout): never overwritten
         if final.exists():  # left by a job that crashed between placing and registering: not registered
             shutil.rmtree(final)
         final.parent.mkdir(parents=True, exist_ok=True)

@@ -150,8 +150,12 @@ class Fleet:
         """The next episode, on the policy version assigned to the robot's lineage (hot swap)."""
         target = self.assigned.get(robot.slot.lineage)
         if target is not None and target is not robot.slot:
-            robot.slot.controller.remove(robot.id)
+            old = robot.slot
+            old.controller.remove(robot.id)
             robot.slot = target
+            in_use = [r.slot for r in self.robots.values()] + list(self.assigned.values())
+            if all(slot is not old for slot in in_use):
+                self.slots.pop(old.version, None)  # no robot left on it: its weights and trace are freed
         robot.seed += 1
         robot.slot.controller.reset(robot.id, robot.seed)
         robot.steps = robot.assisted_steps = robot.events = 0
@@ -558,7 +562,11 @@ class Fleet:
         view), read from the database at most every ``max_age`` seconds."""
         now = time.monotonic()
         if self._lineages is None or now - self._lineages[0] > max_age:
-            self._lineages = (now, tuple(registry.lineage_summaries(self.sessions)))
+            try:
+                self._lineages = (now, tuple(registry.lineage_summaries(self.sessions)))
+            except Exception:  # noqa: BLE001 - a database hiccup: the last view, tried again later
+                log.warning("reading the policy registry failed", exc_info=True)
+                self._lineages = (now, self._lineages[1] if self._lineages else ())
         return self._lineages[1]
 
     def served_lineages(self) -> set[str]:
@@ -595,7 +603,17 @@ class Fleet:
         return changed
 
     def _load(self, row: PolicyVersion) -> PolicySlot:
-        """The slot of a version (slow: no fleet lock), its threshold recorded."""
+        """The slot of a version (slow: no fleet lock), its threshold recorded; ServiceError 422 when it
+        cannot drive every robot of its lineage (another observation size)."""
+        with self.lock:
+            tasks = {r.task for r in self.robots.values() if r.slot.lineage == row.name}
+        for task in sorted(tasks):
+            dim = _task_spec(task).obs_spec.dim
+            wanted = (_policy_info(Path(row.path)).get("policy") or {}).get("obs_dim")
+            if wanted != dim:
+                raise ServiceError(
+                    422, f"policy {row.ref} expects {wanted}-dim observations, its lineage's {task} robots give {dim}"
+                )
         slot = self.slots.get(row.id) or load_slot(self.settings, Path(row.path), row.task, row.id, row.name)
         with self.sessions() as s:
             s.get(PolicyVersion, row.id).threshold = slot.threshold

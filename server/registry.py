@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from policy.checkpoint import CheckpointError, read_info
@@ -136,13 +137,14 @@ def register(
         if row is not None:
             return row
         lineage = name or (parent_row.name if parent_row is not None else Path(key).name)
-        PolicyRef.parse(lineage)  # a name NAME@VERSION can address
+        if PolicyRef.parse(lineage) != PolicyRef(lineage):  # e.g. a folder named "x@3"
+            raise ServiceError(422, f"{lineage!r} cannot name a policy: NAME@VERSION could not address it")
         last = s.scalar(select(func.max(PolicyVersion.version)).where(PolicyVersion.name == lineage)) or 0
         row = PolicyVersion(
             name=lineage, version=last + 1, path=key, task=task, status=status, parent_id=parent, **fields
         )
         s.add(row)
-        s.commit()
+        _commit(s, f"another version of {lineage} was registered at the same time: try again")
         return row
 
 
@@ -158,9 +160,10 @@ def promote(sessions: sessionmaker, ref: str | PolicyRef | int, reason: str | No
         ):
             if other.id != row.id:
                 other.status, other.status_reason = "retired", f"replaced by {row.ref}"
+        s.flush()  # the retirement first: one active version per lineage is a unique index
         row.status = "active"
         row.status_reason = reason or "promoted"
-        s.commit()
+        _commit(s, f"{row.name} was promoted or rolled back at the same time: try again")
         return row
 
 
@@ -175,9 +178,19 @@ def rollback(sessions: sessionmaker, name: str, reason: str | None = None) -> Po
             raise ServiceError(409, f"the parent of {active.ref} is {parent.ref}, another lineage: promote it instead")
         _check_files(parent)
         active.status, active.status_reason = "retired", reason or f"rolled back to {parent.ref}"
+        s.flush()
         parent.status, parent.status_reason = "active", reason or f"rollback from {active.ref}"
-        s.commit()
+        _commit(s, f"{name} was promoted or rolled back at the same time: try again")
         return parent
+
+
+def _commit(s: Session, conflict: str) -> None:
+    """Commits; a unique index broken by a concurrent writer is a 409 and nothing of this one is kept."""
+    try:
+        s.commit()
+    except IntegrityError as exc:
+        s.rollback()
+        raise ServiceError(409, conflict) from exc
 
 
 def _ref(ref: str | PolicyRef) -> PolicyRef:

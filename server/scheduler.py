@@ -110,9 +110,11 @@ class JobLauncher:
                 log.warning("a fine-tuning job started by this service is still running: not starting another")
                 return None
             cmd = [sys.executable, "-m", "hitl.cli", "finetune", "--quiet", "--trigger", trigger]
-            cmd += ["--data-dir", str(self.data_dir), "--database-url", self.database_url]
+            cmd += ["--data-dir", str(self.data_dir)]  # the database URL goes by environment: it may hold a password
             # the child lowers its own priority: no preexec_fn in a threaded server
-            cmd += ["--nice", str(self.settings.niceness)]
+            cmd += ["--nice", str(self.settings.niceness)] + (
+                ["--idle-priority"] if self.settings.idle_priority else []
+            )
             if policy:
                 cmd += ["--policy", policy]
             if job_id is not None:
@@ -123,10 +125,13 @@ class JobLauncher:
             stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
             out = open(logs / f"finetune-{stamp}-{trigger}.log", "ab")  # noqa: SIM115 - the child owns it
             env = {**os.environ, "PYTHONUNBUFFERED": "1", "HITL_FINETUNE": self.settings.model_dump_json()}
-            self.process = subprocess.Popen(
-                cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env
-            )
-            out.close()
+            env["HITL_DATABASE_URL"] = self.database_url
+            try:
+                self.process = subprocess.Popen(
+                    cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env
+                )
+            finally:
+                out.close()
             log.info("fine-tuning job started (%s), pid %d, log %s", trigger, self.process.pid, out.name)
             return self.process
 

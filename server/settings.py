@@ -52,6 +52,9 @@ class FinetuneSettings(BaseModel):
         description="cron expression (server local time) for the nightly job; empty or null: never scheduled",
     )
     niceness: int = Field(19, ge=0, le=19, description="CPU priority of the job's process below the fleet (os.nice)")
+    idle_priority: bool = Field(
+        True, description="also run the job under Linux SCHED_IDLE: only on CPU time the fleet leaves unused"
+    )
     promote: bool = Field(True, description="promote a version that passes the gate (false: leave it a candidate)")
     eval_episodes: int = Field(20, ge=1, le=1000, description="seeded autonomous episodes per evaluation task")
     tolerance: float = Field(0.05, ge=0, lt=1, description="the gate: allowed success drop on the training task")

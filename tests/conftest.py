@@ -22,3 +22,42 @@ def task_cache():
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)
+
+
+def _pg_bin(name: str) -> str:
+    import glob
+    import shutil
+
+    found = shutil.which(name) or next(iter(sorted(glob.glob(f"/usr/lib/postgresql/*/bin/{name}"), reverse=True)), None)
+    if found is None:
+        raise RuntimeError(f"PostgreSQL's {name} not found: apt-get install -y postgresql (.ci/run does)")
+    return found
+
+
+@pytest.fixture(scope="session")
+def postgres_url():
+    """A throwaway PostgreSQL cluster on 127.0.0.1 (initdb into a temporary folder, trust auth), stopped
+    and removed at the end of the session; run as ``nobody`` when the tests run as root (postgres refuses
+    root)."""
+    import os
+    import shutil
+    import subprocess
+    import tempfile
+
+    from tests.helpers import free_port
+
+    root = tempfile.mkdtemp(prefix="hitl-pg-")
+    as_user = ["runuser", "-u", "nobody", "--"] if os.geteuid() == 0 else []
+    if as_user:
+        shutil.chown(root, "nobody")
+    data, port = os.path.join(root, "data"), free_port()
+    run = lambda *cmd: subprocess.run([*as_user, *cmd], check=True, capture_output=True, timeout=120)  # noqa: E731
+    run(_pg_bin("initdb"), "-D", data, "-A", "trust", "-U", "hitl")
+    opts = f"-p {port} -k {root} -c listen_addresses=127.0.0.1 -c fsync=off"
+    run(_pg_bin("pg_ctl"), "-D", data, "-o", opts, "-l", os.path.join(root, "log"), "-w", "start")
+    try:
+        run(_pg_bin("createdb"), "-h", "127.0.0.1", "-p", str(port), "-U", "hitl", "hitl")
+        yield f"postgresql+psycopg://hitl@127.0.0.1:{port}/hitl"
+    finally:
+        subprocess.run([*as_user, _pg_bin("pg_ctl"), "-D", data, "-m", "immediate", "stop"], capture_output=True)
+        shutil.rmtree(root, ignore_errors=True)

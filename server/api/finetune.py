@@ -72,7 +72,10 @@ def job(job_id: Id, sessions: SessionsDep, _: Viewer) -> FinetuneJob:
 def start_job(body: FinetuneJobIn, request: Request, sessions: SessionsDep, launcher: LauncherDep, _: Admin):
     """Queues a job for ``policy`` and starts it in a separate process; poll ``/finetune-jobs/{id}``.
     The policy and its data are checked first: a bad request queues nothing."""
-    since = parse_since(body.since) if body.since else None
+    try:
+        since = parse_since(body.since) if body.since else None
+    except ValueError as exc:
+        raise ServiceError(422, str(exc)) from exc
     runner = FinetuneRunner(sessions, request.app.state.settings.data_dir, progress=False)
     [plan] = runner.plan(JobRequest(policy=body.policy, since=since))
     if launcher.running():

@@ -64,17 +64,19 @@ def _data(n=40, seed=0):
 def test_training_resumed_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path):
     cfg = TrainConfig(steps=10, batch_size=8, warmup_steps=2, val_every=100)
     straight, _ = train_policy(tiny_policy(), _data(), None, cfg, progress=False)
-    states = []
-    train_policy(
-        tiny_policy(),
-        _data(),
-        None,
-        cfg,
-        progress=False,
-        checkpoint=lambda s: states.append(s.save(tmp_path / f"at{s.step}")),
-        checkpoint_every=4,
-    )
-    assert [TrainState.load(p).step for p in states] == [4, 8, 10]
+    saved = []
+
+    def keep(state):
+        state.save(tmp_path / f"at{state.step}")
+        state.save(tmp_path / "rolling")  # one folder saved over and over: the latest complete state
+        saved.append(tmp_path / f"at{state.step}")
+
+    train_policy(tiny_policy(), _data(), None, cfg, progress=False, checkpoint=keep, checkpoint_every=4)
+    assert [TrainState.load(p).step for p in saved] == [4, 8, 10]
+    assert TrainState.load(tmp_path / "rolling").step == 10
+    assert [d.name for d in (tmp_path / "rolling").glob("step-*")] == ["step-00000010"]
+    (tmp_path / "rolling" / "step-00000010" / TrainState.META).unlink()  # a save cut short
+    assert not TrainState.exists(tmp_path / "rolling")
     resumed, history = train_policy(
         tiny_policy(), _data(), None, cfg, progress=False, resume=TrainState.load(tmp_path / "at4")
     )

@@ -208,3 +208,36 @@ def test_job_summary_is_json(store):
     )
     doc = json.loads(lines[-1])
     assert doc["lineage"] == "lift-cube" and doc["data"]["segments"] == 2
+
+
+@pytest.mark.parametrize("better", [True, False])
+def test_the_gate_promotes_a_better_candidate_and_keeps_a_worse_one(store, monkeypatch, better):
+    """Evaluation replaced by fixed results, so both of the gate's outcomes run end to end."""
+    from policy.finetune import TaskResult
+    from server import finetune_job
+
+    sessions, data_dir, parent = store
+    calls = []
+
+    def fake_evaluate(policy, tasks, episodes, seed, progress=True):
+        calls.append(tasks)
+        first = len(calls) == 1  # the parent is evaluated first, then the candidate
+        nut = 2 if first else (8 if better else 1)
+        return {t: TaskResult(t, 10, 9 if t == TASK else nut, seed) for t in tasks}
+
+    monkeypatch.setattr(finetune_job, "evaluate", fake_evaluate)
+    [summary] = FinetuneRunner(sessions, data_dir, progress=False).run(JobRequest(policy="lift-cube", config=TINY))
+    child = registry.resolve(sessions, summary["version"])
+    rows = {r.ref: r for r in registry.versions(sessions, "lift-cube")}
+    assert summary["promoted"] is better and calls == [["lift-cube", "lift-nut"]] * 2
+    if better:
+        assert child.status == "active" and rows["lift-cube@1"].status == "retired"
+        assert child.status_reason == "gate passed: lift-nut 0.20 -> 0.80; lift-cube 0.90 -> 0.90 (tolerance 0.05)"
+    else:
+        assert child.status == "candidate" and rows["lift-cube@1"].status == "active"
+        assert child.status_reason == "gate refused: not better on lift-nut: 0.10 against 0.20"
+    with sessions() as s:
+        job = s.scalars(select(FinetuneJob)).one()
+    assert job.gate["promoted"] is better and job.gate["evidence"]["target_success"]["parent"] == 0.2
+    # the parent's results are kept in its row, for the next job on the same seeds
+    assert registry.by_id(sessions, parent.id).evaluation["tasks"]["lift-nut"]["successes"] == 2

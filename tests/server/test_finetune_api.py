@@ -59,6 +59,8 @@ def test_promote_rollback_and_jobs_refuse_bad_requests_and_weak_roles(service):
         ("/finetune-jobs", {"policy": "ghost"}, 404),
         ("/finetune-jobs", {"policy": "lift-cube"}, 422),  # no takeover segments yet
         ("/finetune-jobs", {"policy": "lift-cube", "since": "yesterday"}, 422),
+        ("/finetune-jobs", {"policy": "lift-cube", "since": "0h"}, 422),
+        ("/finetune-jobs", {"policy": "lift-cube", "since": "999999999999999w"}, 422),
     ):
         r = c.post(path, json=body, headers=_h(service))
         assert r.status_code == status, (path, body, r.text)

@@ -142,3 +142,41 @@ def test_a_restarted_fleet_serves_the_promoted_version_or_falls_back_when_it_is_
     assert third.view(0).slot.version == v1.id  # the configured folder, not a service that cannot start
     assert third.sync_policies() == []
     third.stop()
+
+
+def test_the_registry_on_postgresql(postgres_url, tmp_path):
+    """Every migration applies on PostgreSQL, and versions, promote and rollback behave as on SQLite."""
+    from server.db import make_engine, migrate, session_factory
+
+    migrate(postgres_url)
+    engine = make_engine(postgres_url)
+    sessions = session_factory(engine)
+    name = f"pg-{tmp_path.name}"  # the session's database is shared: a lineage of this test's own
+    v1 = registry.register(sessions, tiny_policy_folder(tmp_path / "a", "lift-cube", 1.0), "lift-cube", name=name)
+    v2 = registry.register(sessions, tiny_policy_folder(tmp_path / "b", "lift-cube", 1.0), "lift-cube", parent=v1.id)
+    assert (v1.ref, v2.ref) == (f"{name}@1", f"{name}@2")
+    registry.promote(sessions, v1.id)
+    registry.promote(sessions, f"{name}@2")
+    assert registry.resolve(sessions, name).id == v2.id
+    assert registry.rollback(sessions, name).id == v1.id
+    assert [r.status for r in registry.versions(sessions, name)] == ["active", "retired"]
+    engine.dispose()
+
+
+def test_one_active_version_per_lineage_is_enforced_by_the_database(tmp_path):
+    from sqlalchemy.exc import IntegrityError
+
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=4)
+    v1 = registry.resolve(fleet.sessions, "policy")
+    v2 = registry.register(
+        fleet.sessions, tiny_policy_folder(tmp_path / "v2", "lift-cube", 1e9), "lift-cube", parent=v1.id
+    )
+    with fleet.sessions() as s, pytest.raises(IntegrityError):  # a writer that forgets to retire the other
+        s.get(PolicyVersion, v2.id).status = "active"
+        s.commit()
+    odd = tiny_policy_folder(tmp_path / "x@3", "lift-cube", 1e9)
+    with pytest.raises(ServiceError) as err:
+        registry.register(fleet.sessions, odd, "lift-cube")
+    assert err.value.status == 422 and "NAME@VERSION could not address it" in err.value.message
+    assert [r.ref for r in registry.versions(fleet.sessions)] == ["policy@1", "policy@2"]
+    fleet.stop()

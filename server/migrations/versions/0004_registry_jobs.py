@@ -29,8 +29,28 @@ def upgrade() -> None:
     for row_id, name in rows:
         seen[name] = seen.get(name, 0) + 1
         conn.execute(sa.text("UPDATE policy_versions SET version = :v WHERE id = :i"), {"v": seen[name], "i": row_id})
+    # one active version per lineage: older databases may have several (every configured folder was
+    # made active); the newest stays active
+    for (name,) in conn.execute(
+        sa.text("SELECT name FROM policy_versions WHERE status = 'active' GROUP BY name HAVING COUNT(*) > 1")
+    ).fetchall():
+        keep = conn.execute(
+            sa.text("SELECT MAX(id) FROM policy_versions WHERE name = :n AND status = 'active'"), {"n": name}
+        ).scalar()
+        conn.execute(
+            sa.text("UPDATE policy_versions SET status = 'retired' WHERE name = :n AND status = 'active' AND id <> :k"),
+            {"n": name, "k": keep},
+        )
     with op.batch_alter_table("policy_versions", schema=None) as batch_op:
         batch_op.create_unique_constraint("uq_policy_versions_name_version", ["name", "version"])
+    op.create_index(
+        "uq_policy_versions_one_active",
+        "policy_versions",
+        ["name"],
+        unique=True,
+        sqlite_where=sa.text("status = 'active'"),
+        postgresql_where=sa.text("status = 'active'"),
+    )
 
     op.create_table(
         "finetune_jobs",
@@ -70,6 +90,7 @@ def downgrade() -> None:
     op.drop_index("ix_finetune_jobs_status", table_name="finetune_jobs")
     op.drop_index("ix_finetune_jobs_lineage", table_name="finetune_jobs")
     op.drop_table("finetune_jobs")
+    op.drop_index("uq_policy_versions_one_active", table_name="policy_versions")
     with op.batch_alter_table("policy_versions", schema=None) as batch_op:
         batch_op.drop_constraint("uq_policy_versions_name_version", type_="unique")
         for column in ("status_reason", "command", "evaluation", "calibration", "manifest", "version"):
