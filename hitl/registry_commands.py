@@ -157,7 +157,7 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.nice:
         os.nice(args.nice)  # below the fleet: the service starts its jobs this way
-    if args.idle_priority:  # Linux SCHED_IDLE: the CPU only when nothing else wants it
+    if args.idle_priority and hasattr(os, "SCHED_IDLE"):  # Linux: the CPU only when nothing else wants it
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     try:
         settings, sessions = _store(args)

@@ -180,18 +180,18 @@ class FinetuneRunner:
             plans = self.plan(request)
         except ServiceError as exc:
             if request.job_id is not None:
-                self._finish_queued(request.job_id, "failed", exc.message)
+                self.fail_queued(request.job_id, exc.message)
             raise
         if not plans:
             if request.job_id is not None:
-                self._finish_queued(request.job_id, "failed", "no lineage has new takeover segments")
+                self.fail_queued(request.job_id, "no lineage has new takeover segments")
             self.report("nothing to do: no lineage has new closed or recovered takeover segments")
             return []
         lease = leases.acquire(self.sessions, leases.FINETUNE_LEASE, self.owner, request.lease_ttl)
         if lease is None:
             owner, left = leases.holder(self.sessions, leases.FINETUNE_LEASE)
             if request.job_id is not None:
-                self._finish_queued(request.job_id, "failed", f"another fine-tuning job is running ({owner})")
+                self.fail_queued(request.job_id, f"another fine-tuning job is running ({owner})")
             raise JobBusy(f"another fine-tuning job holds the lease: {owner}, {left or 0:.0f} s left unless renewed")
         out = []
         try:
@@ -202,11 +202,12 @@ class FinetuneRunner:
             leases.release(self.sessions, lease)
         return out
 
-    def _finish_queued(self, job_id: int, status: str, error: str) -> None:
+    def fail_queued(self, job_id: int, error: str) -> None:
+        """Ends a job row that is still ``queued`` (its process never took it); others are left alone."""
         with self.sessions() as s:
             job = s.get(FinetuneJob, job_id)
             if job is not None and job.status == "queued":
-                job.status, job.error, job.ended_at = status, error, utcnow()
+                job.status, job.error, job.ended_at = "failed", error[:4000], utcnow()
                 s.commit()
 
     def _job_row(self, plan: Plan, request: JobRequest) -> tuple[int, bool]:

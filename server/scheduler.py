@@ -102,9 +102,15 @@ class JobLauncher:
         return self.process is not None and self.process.poll() is None
 
     def launch(
-        self, trigger: str, policy: str | None = None, job_id: int | None = None, extra: list[str] | None = None
+        self,
+        trigger: str,
+        policy: str | None = None,
+        job_id: int | None = None,
+        extra: list[str] | None = None,
+        on_exit: Callable[[int, Path], None] | None = None,
     ) -> subprocess.Popen | None:
-        """The new process, or None when one started from here is still running."""
+        """The new process, or None when one started from here is still running; ``on_exit(returncode,
+        log file)`` is called from a thread when it ends."""
         with self._lock:
             if self.running():
                 log.warning("a fine-tuning job started by this service is still running: not starting another")
@@ -133,6 +139,9 @@ class JobLauncher:
             finally:
                 out.close()
             log.info("fine-tuning job started (%s), pid %d, log %s", trigger, self.process.pid, out.name)
+            if on_exit is not None:
+                proc, path = self.process, Path(out.name)
+                threading.Thread(target=lambda: on_exit(proc.wait(), path), name="finetune-exit", daemon=True).start()
             return self.process
 
     def stop(self, timeout: float = 30.0) -> None:

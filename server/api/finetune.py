@@ -85,7 +85,11 @@ def start_job(body: FinetuneJobIn, request: Request, sessions: SessionsDep, laun
         s.add(row)
         s.commit()
     extra = ["--since", body.since.strip()] if body.since else []
-    if launcher.launch("api", body.policy, row.id, extra) is None:
+
+    def exited(code: int, log_file) -> None:  # a process that died before taking its queued row
+        runner.fail_queued(row.id, f"the job process exited with code {code} before starting; see {log_file}")
+
+    if launcher.launch("api", body.policy, row.id, extra, on_exit=exited) is None:
         with sessions() as s:
             s.delete(s.get(FinetuneJob, row.id))
             s.commit()

@@ -241,3 +241,35 @@ def test_the_gate_promotes_a_better_candidate_and_keeps_a_worse_one(store, monke
     assert job.gate["promoted"] is better and job.gate["evidence"]["target_success"]["parent"] == 0.2
     # the parent's results are kept in its row, for the next job on the same seeds
     assert registry.by_id(sessions, parent.id).evaluation["tasks"]["lift-nut"]["successes"] == 2
+
+
+def test_a_queued_job_whose_process_dies_before_starting_is_marked_failed(store):
+    """The API queues a row, then starts a process; one that exits before taking the row leaves it failed
+    with the exit code and its log, not queued forever."""
+    import threading
+
+    from server.db import utcnow
+    from server.scheduler import JobLauncher
+    from server.settings import FinetuneSettings
+
+    sessions, data_dir, parent = store
+    with sessions() as s:
+        row = FinetuneJob(lineage="lift-cube", status="queued", trigger="api", parent_id=parent.id, created_at=utcnow())
+        s.add(row)
+        s.commit()
+    runner = FinetuneRunner(sessions, data_dir, progress=False)
+    done = threading.Event()
+
+    def exited(code, log_file):
+        runner.fail_queued(row.id, f"the job process exited with code {code} before starting; see {log_file}")
+        done.set()
+
+    url = f"sqlite:///{data_dir / 'hitl.db'}"
+    launcher = JobLauncher(data_dir, url, FinetuneSettings(schedule=None, niceness=0, idle_priority=False))
+    proc = launcher.launch("api", "lift-cube", row.id, ["--no-such-flag"], on_exit=exited)
+    assert proc is not None and done.wait(120)
+    with sessions() as s:
+        job = s.get(FinetuneJob, row.id)
+    assert job.status == "failed" and "exited with code 2 before starting" in job.error
+    log_file = job.error.rsplit("see ", 1)[1]
+    assert "unrecognized arguments: --no-such-flag" in Path(log_file).read_text()
