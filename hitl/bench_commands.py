@@ -202,6 +202,8 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         given["finetune"] = FinetuneConfig(ratio=args.ratio)
     if args.return_after is not None:
         given["return_after"] = args.return_after
+    if args.hand_back is not None:
+        given["hand_back"] = args.hand_back
     cfg = FinetuneBenchConfig.quick(**given) if args.quick else FinetuneBenchConfig(**given)
     result = run_bench(cfg, args.cache, progress=not args.quiet)
     summary = summarize(result)
@@ -234,6 +236,9 @@ def register_finetune(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--ratio", type=float, default=None, help="takeover share of each mini-batch (default 0.5)")
     q.add_argument(
         "--return-after", type=int, default=None, help="the operator hands back after N calm steps (default 1)"
+    )
+    q.add_argument(
+        "--hand-back", choices=["continuous", "budgeted"], default=None, help="how takeovers end (default continuous)"
     )
     q.add_argument("--section", default=None, help="the report section's name (default finetune / finetune-quick)")
     q.add_argument("--cache", default="runs/bench-finetune")

@@ -99,6 +99,12 @@ class Samples:
     def count(self) -> dict[str, int]:
         return {t: sum(len(o) for o, _ in r) for t, r in self.runs.items()}
 
+    def gripper_closed_share(self) -> dict[str, float]:
+        """Per task, the share of samples whose action closes the gripper: whether the data reaches grasps."""
+        return {
+            t: float(np.mean(np.concatenate([a[:, -1] for _, a in r]) > 0)) if r else 0.0 for t, r in self.runs.items()
+        }
+
     def first(self, k: int) -> TakeoverSet:
         """The first ``k`` samples, ``k / len(tasks)`` from each task (the remainder to the first ones),
         whole runs in order, the last one cut."""
@@ -188,10 +194,13 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
     tasks = [cfg.train_task, *cfg.unseen]
     start = time.perf_counter()
 
+    computed = []  # the cache keys computed by this run (the rest were read from the cache)
+
     def cached(key: str, compute):
         path = cache / f"{key}.json"
         if path.is_file():
             return json.loads(path.read_text())
+        computed.append(key)
         value = compute()
         path.write_text(json.dumps(value) + "\n")
         return value
@@ -226,7 +235,11 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
                 skipped[source] = f"{type(exc).__name__}: {exc}"
                 continue
             samples[source].save(stored)
-            collected[source] = samples[source].count()
+            collected[source] = {
+                "samples": samples[source].count(),
+                "takeovers": {t: len(r) for t, r in samples[source].runs.items()},
+                "gripper_closed_share": samples[source].gripper_closed_share(),
+            }
         key = f"point-{source.replace(':', '_')}-{k}-" + cfg.digest(source, k, tasks)
 
         def compute(source=source, k=k) -> dict:
@@ -251,11 +264,8 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
         "collected": collected,
         "skipped_sources": skipped,
         "seconds": round(time.perf_counter() - start, 1),
+        "computed_in_this_run": len(computed),
+        "read_from_cache": len(points) + 1 - len(computed),
         "pretraining": {"folder": info["dataset"]["folder"], "samples": int(len(pre_train[keys.OBS]))},
         "policy_info": {"command": read_info(cfg.policy).get("command")},
     }
-
-
-def unseen_rate(result: dict, cfg_unseen: tuple[str, ...]) -> float:
-    """Mean success over the unseen tasks of one ``success`` dict."""
-    return float(np.mean([result[t]["success_rate"] for t in cfg_unseen]))

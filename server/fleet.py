@@ -607,9 +607,9 @@ class Fleet:
         cannot drive every robot of its lineage (another observation size)."""
         with self.lock:
             tasks = {r.task for r in self.robots.values() if r.slot.lineage == row.name}
+        wanted = (_policy_info(Path(row.path)).get("policy") or {}).get("obs_dim") if tasks else None
         for task in sorted(tasks):
             dim = _task_spec(task).obs_spec.dim
-            wanted = (_policy_info(Path(row.path)).get("policy") or {}).get("obs_dim")
             if wanted != dim:
                 raise ServiceError(
                     422, f"policy {row.ref} expects {wanted}-dim observations, its lineage's {task} robots give {dim}"
