@@ -322,11 +322,18 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from policy.bench import bench_uncertainty
+    from policy.bench import bench_uncertainty, prepare_for_serving
     from policy.evaluate import rollout_policy
+    from policy.signals import SignalError, load_signal
 
     _set_threads(args)
     policy, info, _ = _policy_with(args)
+    prepare_for_serving(policy, args.device)  # ValueError (exit 2) when this machine lacks the device
+    try:
+        asking = load_signal(policy, args.policy, args.asking) if args.asking else None
+    except SignalError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     task = args.task or info["task"]
     seeds = list(range(args.seed, args.seed + args.episodes))
     episodes, _ = rollout_policy(
@@ -342,9 +349,20 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     order = np.random.default_rng(0).permutation(len(inputs))
     obs = np.stack([inputs[i][0] for i in order])
     centers = np.stack([inputs[i][1] for i in order])
-    result = bench_uncertainty(
-        policy, obs, centers, tuple(args.fleet_sizes), args.repeats, _uncertainty_config(args), progress=not args.quiet
-    )
+    try:
+        result = bench_uncertainty(
+            policy,
+            obs,
+            centers,
+            tuple(args.fleet_sizes),
+            args.repeats,
+            _uncertainty_config(args),
+            asking=asking,
+            progress=not args.quiet,
+        )
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     result = {
         "benchmark": "uncertainty",
         "policy": str(args.policy),
@@ -514,8 +532,12 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     q.add_argument("--task", default=None, help="task to collect rollout states on (default: the policy's)")
     q.add_argument("--episodes", type=int, default=4)
     q.add_argument("--seed", type=int, default=1000)
-    q.add_argument("--fleet-sizes", type=int, nargs="+", default=[1, 8, 32])
-    q.add_argument("--repeats", type=int, default=5)
+    q.add_argument("--fleet-sizes", type=_positive_int, nargs="+", default=[1, 8, 16, 32])
+    q.add_argument("--repeats", type=_positive_int, default=5)
+    q.add_argument("--device", default="cpu", help="where the policy and the uncertainty run: cpu, cuda, cuda:N")
+    q.add_argument(
+        "--asking", default="spread", help="the fleet's asking signal to time as well ('' for none; default spread)"
+    )
     q.add_argument("--ddim-steps", type=int, default=None)
     q.add_argument("--threads", type=int, default=None)
     q.add_argument("--json", action="store_true", help="one line of JSON")

@@ -93,13 +93,17 @@ def _cmd_bench_finetune_load(args: argparse.Namespace) -> int:
 def _cmd_bench_fleet(args: argparse.Namespace) -> int:
     import json
 
+    from policy.devices import check_device
     from server.bench import bench_fleet
+    from server.settings import Settings
 
     sizes = [int(x) for x in args.robots.split(",") if x.strip()]
     if not sizes or any(n < 1 or n > 64 for n in sizes):
         raise ValueError(f"--robots must be a comma-separated list of sizes in 1..64, got {args.robots!r}")
     if not (0 < args.command_hz <= 1000):
         raise ValueError(f"--command-hz must be in (0, 1000], got {args.command_hz!r}")
+    Settings(device=args.device, robots_per_process=args.robots_per_process)  # the settings' own validation
+    check_device(args.device)  # before any process starts
     result = bench_fleet(
         args.task,
         sizes,
@@ -107,6 +111,9 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         torch_threads=args.torch_threads,
         command_hz=args.command_hz,
+        workers=tuple(args.worker),
+        robots_per_process=args.robots_per_process,
+        device=args.device,
     )
     print(json.dumps(result, indent=None if args.json else 2))
     return 0
@@ -199,6 +206,11 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--seconds", type=float, default=10.0)
     q.add_argument("--torch-threads", type=int, default=1, help="server-side torch threads (the setting)")
     q.add_argument("--command-hz", type=float, default=30.0, help="the bench operator's command stream rate")
+    q.add_argument(
+        "--worker", nargs="+", choices=["process", "pool"], default=["process", "pool"], help="worker back ends"
+    )
+    q.add_argument("--robots-per-process", type=int, default=8, help="pool back end (the setting)")
+    q.add_argument("--device", default="cpu", help="where the policy and the uncertainty run: cpu, cuda, cuda:N")
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_fleet)

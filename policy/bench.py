@@ -1,14 +1,17 @@
-"""``hitl bench uncertainty``: cost of the uncertainty metric against DDIM action sampling.
+"""``hitl bench uncertainty``: what one robot-step of policy and uncertainty costs, as served.
 
-States (observation history + current end-effector action) and their denoising
-vectors come from real policy rollouts in the simulator. For each fleet size B
-the same B states are timed with
+States (observation history + current end-effector action) come from real policy rollouts in the
+simulator. The policy is prepared as the fleet prepares it (``prepare_for_serving``: on its device,
+eval mode, the frozen TorchScript trace), and for each fleet size B the same B states are timed with
 
-- DDIM action sampling (``predict_action_chunk``),
-- the probe (one ε_θ call on B x S samples),
-- the GMM fit + score with the sklearn and the torch back end,
+- DDIM action sampling (``predict_action_chunk``), the policy's share of a step;
+- the paper's denoising metric as the fleet scores it (``DenoisingSignal.score``: probe, mixture
+  fits, score), and its parts: the probe (one ε_θ call on B x S samples) and the mixture fits with
+  each back end on identical vectors (``auto``, the served one, and ``torch`` / ``sklearn``);
+- the fleet's asking signal (``spread``), when the policy has it;
 
-and the two back ends are compared on identical vectors: selected n and U.
+and the back ends are compared on identical vectors: selected n and U. Per robot-step figures are the
+batch's median wall time divided by B.
 """
 
 from __future__ import annotations
@@ -19,96 +22,149 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from policy.devices import check_device
 from policy.diffusion_policy import DiffusionPolicy
 from policy.gmm import fit_mixtures
+from policy.signals.base import SignalInput
 from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator, mixture_variance, mode_divergence
 
+GOAL_MS_AT_16 = 2.5  # policy + uncertainty per robot-step at fleet 16 (docs/performance.md)
+GOAL_UNCERTAINTY_OVER_DDIM = 0.25  # the accelerator goal: uncertainty <= 0.25 x one DDIM action sample
 
-def _time(fn, repeats: int) -> float:
+
+def prepare_for_serving(policy: DiffusionPolicy, device: str = "cpu", trace: bool = True) -> DiffusionPolicy:
+    """The policy as ``server.slots.load_slot`` serves it: on ``device``, eval mode, traced."""
+    policy.to(check_device(device)).eval()
+    if trace:
+        policy.freeze_for_inference()
+    return policy
+
+
+def _time(fn, repeats: int, device: torch.device) -> float:
     """Median wall time in seconds over ``repeats`` calls after one warm-up call."""
-    fn()
+
+    def run():
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    run()
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
-        fn()
+        run()
         times.append(time.perf_counter() - t)
     return float(np.median(times))
 
 
 def _score(vectors: torch.Tensor, cfg: UncertaintyConfig, backend: str):
     fit = fit_mixtures(vectors, cfg.max_modes, cfg.criterion, backend, cfg.seed, cfg.reg_covar)
-    return fit.n, mode_divergence(fit.means, fit.n) + cfg.alpha * mixture_variance(vectors, fit.labels, fit.weights)
+    u = mode_divergence(fit.means, fit.n) + cfg.alpha * mixture_variance(vectors, fit.labels, fit.weights)
+    return fit.n.cpu(), u.cpu()
 
 
 def bench_uncertainty(
     policy: DiffusionPolicy,
     obs: np.ndarray,
     centers: np.ndarray,
-    fleet_sizes: tuple[int, ...] = (1, 8, 32),
+    fleet_sizes: tuple[int, ...] = (1, 8, 16, 32),
     repeats: int = 5,
     config: UncertaintyConfig | None = None,
     agreement_states: int = 256,
+    asking=None,
     progress: bool = True,
 ) -> dict:
-    """obs: (M, H, obs_dim) raw histories; centers: (M, 10) normalized current actions."""
+    """policy: prepared (``prepare_for_serving``); obs: (M, H, obs_dim) raw histories; centers: (M, 10)
+    normalized current actions; asking: the fleet's asking signal (e.g. ``spread``) to time, or None."""
+    from policy.signals.sampling import DenoisingConfig, DenoisingSignal
+
     cfg = config or UncertaintyConfig()
+    device = policy.device
     est = UncertaintyEstimator(cfg)
+    denoising = DenoisingSignal(policy, DenoisingConfig.from_uncertainty(cfg))
     chunk = policy.config.action_horizon
     rows = []
     bar = tqdm(fleet_sizes, desc="bench", disable=not progress)
     for b in bar:
+        if b > len(obs):
+            raise ValueError(f"fleet size {b} needs {b} states; the rollouts gave {len(obs)}")
         o = torch.as_tensor(obs[:b])
         c = torch.as_tensor(centers[:b])
+        current = policy.unnormalize_action(c)
         with torch.no_grad():
-            _, actions = est.probe(c, chunk)
-            vectors = policy.noise_prediction(o, actions, 0)[:, :, cfg.chunk_step, :3].double()
-            ddim = _time(lambda o=o: policy.predict_action_chunk(o), repeats)
-            probe = _time(lambda o=o, a=actions: policy.noise_prediction(o, a, 0), repeats)
-            torch_fit = _time(lambda v=vectors: _score(v, cfg, "torch"), repeats)
-            sk_fit = _time(lambda v=vectors: _score(v, cfg, "sklearn"), max(1, repeats // 2))
-        per = 1e3 / b
-        rows.append(
-            {
-                "fleet_size": b,
-                "ddim_ms_per_robot_step": ddim * per,
-                "probe_ms_per_robot_step": probe * per,
-                "torch_gmm_ms_per_robot_step": torch_fit * per,
-                "sklearn_gmm_ms_per_robot_step": sk_fit * per,
-                "torch_uncertainty_ms_per_robot_step": (probe + torch_fit) * per,
-                "sklearn_uncertainty_ms_per_robot_step": (probe + sk_fit) * per,
-                "gmm_speedup": sk_fit / torch_fit,
-                "uncertainty_over_ddim": (probe + torch_fit) / ddim,
+            plan = policy.predict_action_chunk(o)
+            batch = SignalInput(o, current, np.arange(b), action=plan.float())
+            _, actions = est.probe(c.to(device), chunk)
+            vectors = policy.noise_prediction(o.to(device), actions, 0)[:, :, cfg.chunk_step, :3].double()
+            ddim = _time(lambda o=o: policy.predict_action_chunk(o), repeats, device)
+            signal = _time(lambda batch=batch: denoising.score(batch), repeats, device)
+            probe = _time(lambda o=o, a=actions: policy.noise_prediction(o, a, 0), repeats, device)
+            fits = {
+                backend: _time(lambda v=vectors, be=backend: _score(v, cfg, be), repeats, device)
+                for backend in ("auto", "torch")
             }
-        )
-    # agreement of the two back ends on identical vectors
+            host = vectors.cpu()
+            fits["sklearn"] = _time(lambda v=host: _score(v, cfg, "sklearn"), max(1, repeats // 2), device)
+            ask = _time(lambda batch=batch: asking.score(batch), repeats, device) if asking is not None else None
+        per = 1e3 / b
+        row = {
+            "fleet_size": b,
+            "ddim_ms_per_robot_step": ddim * per,
+            "denoising_signal_ms_per_robot_step": signal * per,
+            "probe_ms_per_robot_step": probe * per,
+            "gmm_auto_ms_per_robot_step": fits["auto"] * per,
+            "gmm_torch_ms_per_robot_step": fits["torch"] * per,
+            "gmm_sklearn_ms_per_robot_step": fits["sklearn"] * per,
+            "policy_plus_uncertainty_ms_per_robot_step": (ddim + signal) * per,
+            "uncertainty_over_ddim": signal / ddim,
+            "robots_per_core_at_10hz": 0.1 / ((ddim + signal) / b),
+        }
+        if ask is not None:
+            row[f"{asking.name}_ms_per_robot_step"] = ask * per
+            row[f"policy_plus_{asking.name}_plus_uncertainty_ms_per_robot_step"] = (ddim + signal + ask) * per
+        rows.append(row)
+    # agreement of the back ends on identical vectors
     m = min(agreement_states, len(obs))
     ns, us = {}, {}
     with torch.no_grad():
         vec = []
         for i in range(0, m, 64):
-            _, actions = est.probe(torch.as_tensor(centers[i : min(i + 64, m)]), chunk)
+            _, actions = est.probe(torch.as_tensor(centers[i : min(i + 64, m)]).to(device), chunk)
             eps = policy.noise_prediction(torch.as_tensor(obs[i : min(i + 64, m)]), actions, 0)
             vec.append(eps[:, :, cfg.chunk_step, :3].double())
         vectors = torch.cat(vec)
-    for backend in ("torch", "sklearn"):
-        ns[backend], us[backend] = _score(vectors, cfg, backend)
-    du = (us["torch"] - us["sklearn"]).abs()
+    for backend in ("auto", "torch", "sklearn"):
+        ns[backend], us[backend] = _score(vectors if backend != "sklearn" else vectors.cpu(), cfg, backend)
+    at16 = next((r for r in rows if r["fleet_size"] == 16), None)
+
+    def versus(a: str) -> dict:
+        du = (us[a] - us["sklearn"]).abs()
+        return {
+            "n_agreement": float((ns[a] == ns["sklearn"]).double().mean()),
+            "median_abs_delta_u": float(du.median()),
+            "p95_abs_delta_u": float(du.quantile(0.95)),
+            "max_abs_delta_u": float(du.max()),
+        }
+
     return {
-        "device": "cpu",
+        "device": str(device),
         "threads": torch.get_num_threads(),
         "samples_per_robot": cfg.num_samples,
         "max_modes": cfg.max_modes,
         "criterion": cfg.criterion,
+        "gmm_backend": cfg.backend,
         "ddim_steps": policy.config.num_inference_steps,
+        "traced": "_traced" in policy.__dict__,
         "fleet": rows,
-        "speedup_at_32": next((r["gmm_speedup"] for r in rows if r["fleet_size"] == 32), None),
+        "goal": {
+            "policy_plus_uncertainty_ms_at_16": GOAL_MS_AT_16,
+            "met": at16 is not None and at16["policy_plus_uncertainty_ms_per_robot_step"] <= GOAL_MS_AT_16,
+        },
         "agreement": {
             "states": m,
-            "n_agreement": float((ns["torch"] == ns["sklearn"]).double().mean()),
-            "median_abs_delta_u": float(du.median()),
-            "p95_abs_delta_u": float(du.quantile(0.95)),
             "median_u": float(us["sklearn"].median()),
-            "n_histogram_torch": np.bincount(ns["torch"].numpy(), minlength=cfg.max_modes + 1)[1:].tolist(),
-            "n_histogram_sklearn": np.bincount(ns["sklearn"].numpy(), minlength=cfg.max_modes + 1)[1:].tolist(),
+            "auto_vs_sklearn": versus("auto"),
+            "torch_vs_sklearn": versus("torch"),
+            "n_histogram": {k: np.bincount(v.numpy(), minlength=cfg.max_modes + 1)[1:].tolist() for k, v in ns.items()},
         },
     }

@@ -111,12 +111,19 @@ class DiffusionPolicy(nn.Module):
     def unnormalize_action(self, action: torch.Tensor) -> torch.Tensor:
         return self.action_normalizer.unnormalize(action)
 
+    @property
+    def device(self) -> torch.device:
+        """Where the weights live. ``noise_prediction`` and ``predict_action_chunk`` take inputs on any
+        device, run here, and answer on the device of their input: callers keep CPU tensors while the
+        network runs on an accelerator (``--device cuda``), or pass device tensors to stay there."""
+        return self.action_normalizer.low.device
+
     def _obs_cond(self, obs: torch.Tensor) -> torch.Tensor:
-        """obs: (B, H, obs_dim) raw -> (B, cond_dim) encoded normalized history."""
+        """obs: (B, H, obs_dim) raw -> (B, cond_dim) encoded normalized history (on the policy's device)."""
         cfg = self.config
         if obs.dim() != 3 or obs.shape[1:] != (cfg.obs_horizon, cfg.obs_dim):
             raise ValueError(f"obs must have shape (B, {cfg.obs_horizon}, {cfg.obs_dim}), got {tuple(obs.shape)}")
-        return self.obs_encoder(self.obs_normalizer.normalize(obs.float()).flatten(1))
+        return self.obs_encoder(self.obs_normalizer.normalize(obs.to(self.device, torch.float32)).flatten(1))
 
     # -- training ------------------------------------------------------------------
     def compute_loss(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
@@ -141,8 +148,8 @@ class DiffusionPolicy(nn.Module):
         x = actions[:, None] if squeeze else actions
         cond = self._obs_cond(obs)
         if isinstance(k, int):
-            k = torch.full((x.shape[0],), k, dtype=torch.long, device=x.device)
-        eps = self._eps(x.float(), k, cond)
+            k = torch.full((x.shape[0],), k, dtype=torch.long, device=self.device)
+        eps = self._eps(x.to(self.device, torch.float32), k.to(self.device), cond).to(actions.device)
         return eps[:, 0] if squeeze else eps
 
     # -- serving: a traced copy of the noise network ---------------------------------------
@@ -154,9 +161,9 @@ class DiffusionPolicy(nn.Module):
         if self.training:
             raise RuntimeError("freeze_for_inference needs eval mode (call .eval() first)")
         cfg = self.config
-        x = torch.zeros((2, 1, cfg.action_horizon, cfg.action_dim))
-        k = torch.zeros(2, dtype=torch.long)
-        cond = torch.zeros((2, self.obs_encoder.out_dim))
+        x = torch.zeros((2, 1, cfg.action_horizon, cfg.action_dim), device=self.device)
+        k = torch.zeros(2, dtype=torch.long, device=self.device)
+        cond = torch.zeros((2, self.obs_encoder.out_dim), device=self.device)
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks become constants
             # TorchScript is deprecated in favour of torch.compile, which compiles for tens of seconds per
@@ -201,7 +208,7 @@ class DiffusionPolicy(nn.Module):
         cond = self._obs_cond(obs)
         b = cond.shape[0]
         shape = (b, 1, cfg.action_horizon, cfg.action_dim)
-        if noise is None:
+        if noise is None:  # drawn on the CPU generator: the same actions on every device
             x = torch.randn(shape, generator=generator or self._generator)
         elif tuple(noise.shape) != (b, cfg.action_horizon, cfg.action_dim):
             raise ValueError(
@@ -209,11 +216,12 @@ class DiffusionPolicy(nn.Module):
             )
         else:
             x = noise.reshape(shape).float()
+        x = x.to(self.device)
         steps = self.schedule.ddim_timesteps(cfg.num_inference_steps)
         for i, k in enumerate(steps):
-            eps = self._eps(x, torch.full((b,), k, dtype=torch.long), cond)
+            eps = self._eps(x, torch.full((b,), k, dtype=torch.long, device=self.device), cond)
             x = self.schedule.ddim_step(x, eps, k, steps[i + 1] if i + 1 < len(steps) else -1)
-        return self.action_normalizer.unnormalize(x[:, 0])
+        return self.action_normalizer.unnormalize(x[:, 0]).to(obs.device)
 
     @torch.no_grad()
     def select_action(self, obs: torch.Tensor) -> torch.Tensor:

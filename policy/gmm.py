@@ -4,6 +4,8 @@
 - ``torch``: batched EM over all robots x all n at once, with k-means++ seeding
   and Lloyd refinement, sklearn-style covariance regularisation, and a seeded
   generator for determinism.
+- ``numba``: the same EM compiled per fit (``gmm_numba``): each robot's n = 1..N fits
+  stop on their own, with no per-operator dispatch; the CPU default (``auto``).
 
 Both return a ``MixtureFit`` for the selected n of every robot. Shapes: B robots,
 S vectors of dimension d, N = max_modes; arrays are padded to N modes.
@@ -26,7 +28,9 @@ import numpy as np
 import torch
 
 CRITERIA = ("bic", "likelihood")
-BACKENDS = ("torch", "sklearn")
+# "auto": numba for tensors on the CPU (each fit stops on its own: 4.5x faster than the batched torch EM at
+# fleet 16), torch on an accelerator (one batched EM for the whole fleet)
+BACKENDS = ("auto", "numba", "torch", "sklearn")
 
 
 @dataclass
@@ -43,6 +47,10 @@ class MixtureFit:
     labels: torch.Tensor
     log_likelihood: torch.Tensor
     bic: torch.Tensor
+
+
+def astuple_fit(fit: MixtureFit) -> tuple[torch.Tensor, ...]:
+    return (fit.n, fit.means, fit.weights, fit.labels, fit.log_likelihood, fit.bic)
 
 
 def num_parameters(n: int, d: int) -> int:
@@ -97,9 +105,9 @@ def fit_sklearn(
 # (components x samples x d) tensor is ever formed.
 
 
-def _slot_mask(max_modes: int) -> torch.Tensor:
+def _slot_mask(max_modes: int, device: torch.device | None = None) -> torch.Tensor:
     """(F * K,) True where slot c = f * K + k is a component of the fit with n = f + 1 modes."""
-    f = torch.arange(max_modes)
+    f = torch.arange(max_modes, device=device)
     return (f[None, :] <= f[:, None]).reshape(-1)
 
 
@@ -112,8 +120,8 @@ def _kmeans_pp(x: torch.Tensor, xsq: torch.Tensor, max_modes: int, g: torch.Gene
     """k-means++ seeding of every candidate fit. x: (B, S, d) -> centres (B, F * K, d)."""
     b, s, d = x.shape
     f = max_modes
-    rows = torch.arange(b)[:, None]
-    first = torch.randint(0, s, (b, f), generator=g)
+    rows = torch.arange(b, device=x.device)[:, None]
+    first = torch.randint(0, s, (b, f), generator=g, device=g.device)
     centres = x[rows, first][:, :, None].expand(b, f, f, d).clone()  # (B, F, K, d)
     closest = _sq_dist(x, xsq, centres[:, :, 0])  # (B, F, S)
     for j in range(1, f):
@@ -138,7 +146,7 @@ def _m_step(x, xx, resp, mask, reg: float):
     nk = resp.sum(-1) + 10 * torch.finfo(x.dtype).eps
     means = resp @ x / nk[..., None]
     second = (resp @ xx / nk[..., None]).view(*nk.shape, d, d)
-    cov = second - means[..., :, None] * means[..., None, :] + reg * torch.eye(d, dtype=x.dtype)
+    cov = second - means[..., :, None] * means[..., None, :] + reg * torch.eye(d, dtype=x.dtype, device=x.device)
     return nk / s * mask, means, cov
 
 
@@ -174,15 +182,15 @@ def fit_torch(
     """Batched EM. x: (B, S, d). Stops when every fit's mean log-likelihood changes by < tol (as sklearn).
 
     Runs in float32 on per-robot centred data (likelihoods, BIC and labels do not
-    depend on the shift; the means are shifted back).
+    depend on the shift; the means are shifted back), on ``x``'s device, with a generator there.
     """
     x = torch.as_tensor(x)
     shift = x.to(torch.float64).mean(1, keepdim=True)
     x = (x.to(torch.float64) - shift).to(dtype)
     b, s, d = x.shape
     f = max_modes
-    mask = _slot_mask(f)
-    g = torch.Generator().manual_seed(seed)
+    mask = _slot_mask(f, x.device)
+    g = torch.Generator(device=x.device).manual_seed(seed)
     xsq = (x**2).sum(-1)
     xx = (x[..., :, None] * x[..., None, :]).flatten(-2)  # (B, S, d * d)
     centres = _kmeans_pp(x, xsq, f, g)
@@ -195,7 +203,7 @@ def fit_torch(
             break
         resp = new
     weights, means, cov = _m_step(x, xx, resp, mask, reg_covar)
-    prev = torch.full((b, f), -math.inf, dtype=x.dtype)
+    prev = torch.full((b, f), -math.inf, dtype=x.dtype, device=x.device)
     for _ in range(max_iter):
         resp, norm = _e_step(x, xx, weights, means, cov, mask, f)
         bound = norm.mean(-1)  # (B, F)
@@ -206,11 +214,11 @@ def fit_torch(
     else:
         resp, norm = _e_step(x, xx, weights, means, cov, mask, f)
     ll = norm.sum(-1)  # (B, F)
-    p = torch.tensor([num_parameters(n, d) for n in range(1, f + 1)], dtype=x.dtype)
+    p = torch.tensor([num_parameters(n, d) for n in range(1, f + 1)], dtype=x.dtype, device=x.device)
     bic = -2 * ll + p * math.log(s)
     pick = _select(ll, bic, criterion)
-    rows = torch.arange(b)
-    slots = pick[:, None] * f + torch.arange(f)  # the selected fit's K slots
+    rows = torch.arange(b, device=x.device)
+    slots = pick[:, None] * f + torch.arange(f, device=x.device)  # the selected fit's K slots
     return MixtureFit(
         n=pick + 1,
         means=means[rows[:, None], slots].to(torch.float64) + shift,
@@ -221,9 +229,55 @@ def fit_torch(
     )
 
 
+# -- numba EM, one fit at a time (the CPU fast path) ----------------------------------------------------
+def fit_numba(
+    x,
+    max_modes: int,
+    criterion: str = "bic",
+    seed: int = 0,
+    reg_covar: float = 1e-6,
+    max_iter: int = 100,
+    tol: float = 1e-3,
+) -> MixtureFit:
+    """x: (B, S, d). Each robot's n = 1..N fits stop on their own (``gmm_numba``); float64 throughout."""
+    from policy.gmm_numba import fit_all
+
+    x = torch.as_tensor(x)
+    b, s, d = x.shape
+    fits = fit_all(x.detach().cpu().numpy(), max_modes, seed, reg_covar, max_iter, tol)
+    ll = torch.from_numpy(fits["log_likelihood"])
+    p = torch.tensor([num_parameters(n, d) for n in range(1, max_modes + 1)], dtype=torch.float64)
+    bic = -2 * ll + p * math.log(s)
+    pick = _select(ll, bic, criterion)
+    rows = torch.arange(b)
+    return MixtureFit(
+        n=pick + 1,
+        means=torch.from_numpy(fits["means"])[rows, pick],
+        weights=torch.from_numpy(fits["weights"])[rows, pick],
+        labels=torch.from_numpy(fits["labels"])[rows, pick],
+        log_likelihood=ll,
+        bic=bic,
+    )
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compiles the numba EM (or loads it from numba's on-disk cache) once per process."""
+    global _warm
+    if not _warm:
+        fit_numba(torch.randn((1, 16, 3), generator=torch.Generator().manual_seed(0), dtype=torch.float64), 2)
+        _warm = True
+
+
 def fit_mixtures(x, max_modes: int, criterion: str, backend: str, seed: int = 0, reg_covar: float = 1e-6) -> MixtureFit:
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    if backend == "auto":
+        backend = "numba" if torch.as_tensor(x).device.type == "cpu" else "torch"
+    if backend == "numba":
+        return fit_numba(x, max_modes, criterion, seed, reg_covar)
     if backend == "torch":
         return fit_torch(x, max_modes, criterion, seed, reg_covar)
     if backend == "sklearn":

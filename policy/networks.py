@@ -52,13 +52,29 @@ class _Conv1d(nn.Conv1d):
         return super().forward(x)
 
 
+class _GroupNorm(nn.GroupNorm):
+    """GroupNorm with an exact fast path for length-1 sequences: the group statistics are a layer norm
+    over each group's channels. (PyTorch's CPU group norm on (N, C, 1) inputs took half the probe's
+    time: 0.69 ms of 1.4 ms per call on 2048 rows.)"""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[-1] != 1:
+            return super().forward(x)
+        n, c = x.shape[0], x.shape[1]
+        h = F.layer_norm(x.view(n, self.num_groups, c // self.num_groups), (c // self.num_groups,), eps=self.eps)
+        h = h.view(n, c)
+        if self.affine:
+            h = torch.addcmul(self.bias, h, self.weight)
+        return h.unsqueeze(-1)
+
+
 ACTIVATIONS = {"mish": nn.Mish, "silu": nn.SiLU}
 
 
 class _Conv1dBlock(nn.Sequential):
     def __init__(self, c_in: int, c_out: int, kernel: int, groups: int, act: str) -> None:
         super().__init__(
-            _Conv1d(c_in, c_out, kernel, padding=kernel // 2), nn.GroupNorm(groups, c_out), ACTIVATIONS[act]()
+            _Conv1d(c_in, c_out, kernel, padding=kernel // 2), _GroupNorm(groups, c_out), ACTIVATIONS[act]()
         )
 
 

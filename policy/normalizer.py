@@ -48,10 +48,11 @@ class MinMaxNormalizer(nn.Module):
         return self
 
     def normalize(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.low) / self.span
+        """On ``x``'s device (the statistics follow it: a policy on CUDA normalizes CPU tensors too)."""
+        return (x - self.low.to(x.device)) / self.span.to(x.device)
 
     def unnormalize(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.span + self.low
+        return x * self.span.to(x.device) + self.low.to(x.device)
 
     def stats(self) -> dict[str, list[float]]:
         return {"min": self.low.tolist(), "max": (self.low + self.span).tolist()}

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from policy.gmm import BACKENDS, CRITERIA, MixtureFit, fit_mixtures
+from policy.gmm import BACKENDS, CRITERIA, MixtureFit, astuple_fit, fit_mixtures, warm_up
 from sim.spaces import POS
 
 EpsFn = Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
@@ -43,7 +43,7 @@ class UncertaintyConfig:
     max_modes: int = 4
     criterion: str = "bic"
     alpha: float = 0.1
-    backend: str = "torch"
+    backend: str = "auto"  # numba on CPU, torch on an accelerator (gmm.BACKENDS)
     chunk_step: int = 0
     reg_covar: float = 1e-6
     seed: int = 0
@@ -186,15 +186,18 @@ class UncertaintyEstimator:
     def __init__(self, config: UncertaintyConfig | None = None) -> None:
         self.config = config or UncertaintyConfig()
         self._generator = torch.Generator().manual_seed(self.config.seed)
+        if self.config.backend in ("auto", "numba"):
+            warm_up()  # compiled (or read from numba's cache) now, not in the first control tick
 
     def reset(self) -> None:
         self._generator.manual_seed(self.config.seed)
 
     def probe(self, center: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """center: (B, D) normalized current action -> (positions (B, S, 3), actions (B, S, C, D))."""
+        """center: (B, D) normalized current action -> (positions (B, S, 3), actions (B, S, C, D)), on
+        ``center``'s device (the offsets are drawn on the CPU generator: the same probe on every device)."""
         cfg = self.config
         b, d = center.shape
-        offsets = sample_ball(b, cfg.num_samples, cfg.radius, self._generator)
+        offsets = sample_ball(b, cfg.num_samples, cfg.radius, self._generator).to(center.device)
         actions = center[:, None, :].repeat(1, cfg.num_samples, 1)
         actions[..., POS] += offsets
         return actions[..., POS], actions[:, :, None, :].expand(b, cfg.num_samples, chunk, d)
@@ -211,9 +214,12 @@ class UncertaintyEstimator:
         """obs: whatever ``eps_fn`` takes, batched over B robots; center: (B, D) current end-effector
         action (pose + gripper) in the normalized action space; chunk: the predictor's chunk length;
         alphas_cumprod: (K,) the noise schedule's ᾱ, needed when ``noise_step`` > 0 (the probe is
-        scaled by sqrt(ᾱ_k), as the forward process scales clean actions; the field is read there)."""
+        scaled by sqrt(ᾱ_k), as the forward process scales clean actions; the field is read there).
+
+        The probe, the field and the mixture fits live on ``center``'s device (an accelerator's when the
+        caller puts it there); the returned batch is on the CPU."""
         cfg = self.config
-        center = torch.as_tensor(center, dtype=torch.float32)
+        center = torch.as_tensor(center).float()
         if center.dim() != 2 or center.shape[1] < 3:
             raise ValueError(f"center must have shape (B, D >= 3), got {tuple(center.shape)}")
         if not torch.isfinite(center).all():
@@ -226,10 +232,12 @@ class UncertaintyEstimator:
                 raise ValueError(f"noise_step {cfg.noise_step} needs the schedule's alphas_cumprod covering it")
             actions = actions * float(alphas_cumprod[cfg.noise_step]) ** 0.5
         eps = eps_fn(obs, actions, cfg.noise_step)
-        vectors = eps[:, :, cfg.chunk_step, POS].to(torch.float64)
+        vectors = eps[:, :, cfg.chunk_step, POS].to(center.device, torch.float64)
         if cfg.directions == "unit":
             vectors = vectors / vectors.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         fit = fit_mixtures(vectors, cfg.max_modes, cfg.criterion, cfg.backend, cfg.seed, cfg.reg_covar)
+        fit = MixtureFit(*(t.to(center.device) for t in astuple_fit(fit)))
         d = mode_divergence(fit.means, fit.n)
         var_g = mixture_variance(vectors, fit.labels, fit.weights)
-        return UncertaintyBatch(samples.double(), vectors, fit, d, var_g, d + cfg.alpha * var_g)
+        cpu = [t.cpu() for t in (samples.double(), vectors, d, var_g, d + cfg.alpha * var_g)]
+        return UncertaintyBatch(cpu[0], cpu[1], MixtureFit(*(t.cpu() for t in astuple_fit(fit))), *cpu[2:])

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
+import os
 import tempfile
 import threading
 import time
@@ -77,7 +78,15 @@ def _take_over(fleet: Fleet) -> None:
 
 
 def fleet_throughput(
-    task: str, n: int, seconds: float, data_dir: Path, torch_threads: int = 1, command_hz: float = 30.0
+    task: str,
+    n: int,
+    seconds: float,
+    data_dir: Path,
+    torch_threads: int = 1,
+    command_hz: float = 30.0,
+    worker: str = "process",
+    robots_per_process: int = 8,
+    device: str = "cpu",
 ) -> dict:
     settings = Settings(
         data_dir=data_dir,
@@ -85,10 +94,14 @@ def fleet_throughput(
         robots=[RobotGroup(task=task, count=n)],
         lease_seconds=3600,
         torch_threads=torch_threads,
+        worker=worker,
+        robots_per_process=robots_per_process,
+        device=device,
         assistance=False,  # every other robot stays under the policy: the full per-step cost, all the time
         trigger_mode="continuous",  # with assistance off, the operator keeps robot 0 until its episode ends
     )
     migrate(settings.db_url)
+    rss_before = memory_mb()["rss_mb"]
     fleet = Fleet(settings, session_factory(make_engine(settings.db_url)))
     fleet.start()
     stop = threading.Event()
@@ -112,6 +125,9 @@ def fleet_throughput(
         threading.Thread(target=operator, daemon=True).start()
         time.sleep(1.0)
         with fleet.lock:
+            pids = {pid for r in fleet.robots.values() if r.worker is not None and (pid := worker_pid(r.worker))}
+        workers_cpu0 = cpu_seconds(pids)
+        with fleet.lock:
             steps0 = fleet.env_steps
             ticks0 = fleet.ticks
             fleet.tick_periods.clear()
@@ -126,6 +142,9 @@ def fleet_throughput(
             lat = np.array(fleet.robots[0].latencies)
             teleop_periods = np.array(fleet.robots[0].action_periods)
             cpu = fleet.loop_cpu_seconds - cpu0
+        workers_cpu = cpu_seconds(pids) - workers_cpu0
+        server = memory_mb()
+        workers = [memory_mb(pid) for pid in pids]
     finally:
         stop.set()
         fleet.stop()
@@ -142,12 +161,83 @@ def fleet_throughput(
         # CPU the control loop spent per env step: policy, signals and bookkeeping (one thread)
         "loop_cpu_ms_per_env_step": cpu / max(steps, 1) * 1e3,
         "loop_cpu_share": cpu / seconds,
+        # CPU the physics processes spent per env step (stepping, building frames, pipes, switching)
+        "workers_cpu_ms_per_env_step": workers_cpu / max(steps, 1) * 1e3,
         "teleop_action_period_p50_ms": teleop_p50,
         # target: command-to-applied p99 within one control period + 20 ms. A tick moves only the
         # robots whose physics answered, so the control period is the teleoperated robot's own:
         # the median time between two actions sent to it.
         "latency_target_ms": teleop_p50 + 20 if teleop_p50 is not None else None,
+        "worker": worker,
+        "worker_processes": len(workers),
+        # resident memory: the server process (with its policy, before and after the fleet started) and
+        # the physics processes (each holds one robot, or robots_per_process with the pool back end)
+        "server_rss_before_fleet_mb": rss_before,
+        "server_rss_mb": server["rss_mb"],
+        "server_peak_rss_mb": server["peak_rss_mb"],
+        "worker_peak_rss_mb": max((w["peak_rss_mb"] for w in workers), default=None),
+        "workers_rss_mb_per_robot": sum(w["rss_mb"] for w in workers) / n if workers else None,
     }
+
+
+def memory_mb(pid: int | str = "self") -> dict:
+    """Resident and peak resident memory of a process, in MB (Linux ``/proc``; None elsewhere)."""
+    out = {"rss_mb": None, "peak_rss_mb": None}
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return out
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            out["rss_mb" if key == "VmRSS" else "peak_rss_mb"] = int(value.split()[0]) / 1024
+    return out
+
+
+def cpu_seconds(pids) -> float:
+    """User + system CPU seconds of the processes ``pids`` so far (Linux ``/proc``; 0 elsewhere)."""
+    tick, total = os.sysconf("SC_CLK_TCK"), 0.0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / tick
+    return total
+
+
+def worker_pid(worker) -> int | None:
+    """The process a worker's robot runs in (None for in-process robots)."""
+    from server.pool_workers import PoolWorker
+    from server.workers import ProcessWorker
+
+    if isinstance(worker, ProcessWorker):
+        return worker.pid
+    if isinstance(worker, PoolWorker):
+        return worker.host.process.pid
+    return None
+
+
+def _fleet_child(args: tuple, out) -> None:
+    try:
+        out.put(("ok", fleet_throughput(*args)))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
+        out.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+def _fleet_in_fresh_process(*args) -> dict:
+    """``fleet_throughput`` in a new process: each size's memory figures start from a clean server."""
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    proc = ctx.Process(target=_fleet_child, args=(args, out))  # not a daemon: it starts the fleet's workers
+    proc.start()
+    try:
+        status, value = out.get(timeout=900)
+    finally:
+        proc.join(timeout=60)
+    if status != "ok":
+        raise RuntimeError(f"fleet measurement failed: {value}")
+    return value
 
 
 def bench_fleet(
@@ -157,20 +247,42 @@ def bench_fleet(
     progress: bool = True,
     torch_threads: int = 1,
     command_hz: float = 30.0,
+    workers: tuple[str, ...] = ("process", "pool"),
+    robots_per_process: int = 8,
+    device: str = "cpu",
 ) -> dict:
+    """For each size: raw physics, then the fleet on each worker back end (each in a fresh process)."""
     rows = []
+    todo = [(n, w) for n in sizes for w in workers]
     with tempfile.TemporaryDirectory() as tmp:
-        for n in tqdm(sizes, desc="bench fleet", disable=not progress):
-            raw = raw_throughput(task, n, seconds)
-            fleet = fleet_throughput(task, n, seconds, Path(tmp) / f"n{n}", torch_threads, command_hz)
+        raw = {}
+        for n, worker in tqdm(todo, desc="bench fleet", disable=not progress):
+            if n not in raw:
+                raw[n] = raw_throughput(task, n, seconds)
+            args = (task, n, seconds, Path(tmp) / f"n{n}-{worker}", torch_threads, command_hz)
+            fleet = _fleet_in_fresh_process(*args, worker, robots_per_process, device)
             rows.append(
-                {"robots": n, "raw_env_steps_per_s": raw, **fleet, "share_of_raw": fleet["env_steps_per_s"] / raw}
+                {
+                    "robots": n,
+                    "raw_env_steps_per_s": raw[n],
+                    **fleet,
+                    "share_of_raw": fleet["env_steps_per_s"] / raw[n],
+                }
             )
+    growth = {}
+    for worker in workers:  # the server's resident memory against the fleet size: its slope per robot
+        pts = [(r["robots"], r["server_rss_mb"]) for r in rows if r["worker"] == worker and r["server_rss_mb"]]
+        if len({n for n, _ in pts}) >= 2:
+            growth[worker] = float(np.polyfit([n for n, _ in pts], [m for _, m in pts], 1)[0])
     return {
         "benchmark": "fleet",
         "task": task,
+        "device": device,
         "seconds_per_measurement": seconds,
         "server_torch_threads": torch_threads,
         "operator_command_hz": command_hz,
+        "robots_per_process": robots_per_process,
         "sizes": rows,
+        "server_mb_per_added_robot": growth,
+        "goals": {"share_of_raw_at_16": 0.7, "server_mb_per_added_robot": 5.0},
     }

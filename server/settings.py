@@ -134,9 +134,17 @@ class Settings(BaseSettings):
     )
     torch_threads: int = Field(1, ge=1, le=256, description="server-side torch threads; workers take the other cores")
     trace_policies: bool = Field(True, description="serve each policy's noise network as a frozen TorchScript trace")
-    worker: Literal["process", "in-process"] = Field(
-        "process", description="robot back end: a process per robot, or tasks stepped in the control thread"
+    device: str = Field(
+        "cpu",
+        pattern=r"^(cpu|cuda(:\d+)?)$",
+        description="where the policies and the uncertainty run: cpu, cuda or cuda:N (physics: CPU workers)",
     )
+    worker: Literal["process", "pool", "in-process"] = Field(
+        "process",
+        description="robot back end: a process per robot, robots_per_process robots per process (pool), or tasks "
+        "stepped in the control thread",
+    )
+    robots_per_process: int = Field(8, ge=1, le=256, description="pool back end: robots sharing one process")
     worker_niceness: int = Field(
         10, ge=0, le=19, description="CPU priority of the physics workers below the control loop (os.nice)"
     )

@@ -9,6 +9,8 @@ without blocking, and reports failures as ``WorkerFault``.
   maps to the process's niceness (the control loop's own for a teleoperated robot, lower otherwise).
 - ``InProcessWorker``: the robot's ``Task`` stepped in the caller's thread when the request is
   made. Deterministic and fast to start; the unit tests' fleet and small single-machine runs use it.
+- ``PoolWorker`` (``server.pool_workers``): several robots per process, so one wake-up serves several
+  robots' steps (a process per robot spends much of a small machine's CPU switching between them).
 
 ``WORKERS`` is the registry the settings' ``worker`` name selects from.
 """
@@ -80,18 +82,26 @@ class RobotWorker(ABC):
         return True
 
     @classmethod
-    def wait_any(cls, workers: Sequence[RobotWorker], timeout: float) -> None:
-        """Blocks until one of ``workers`` may have an answer, or ``timeout`` seconds."""
+    def wait_any(
+        cls, workers: Sequence[RobotWorker], timeout: float, min_ready: int = 1, urgent: Sequence[RobotWorker] = ()
+    ) -> None:
+        """Blocks until ``min_ready`` of ``workers``, or any of ``urgent`` (a subset), may have an answer,
+        or ``timeout`` seconds."""
         if not any(w.busy for w in workers):
             time.sleep(min(timeout, 0.01))
 
 
-def wait_any(workers: Sequence[RobotWorker], timeout: float) -> None:
-    """Blocks until any busy worker may have answered (the free-running loop's wait)."""
+def wait_any(
+    workers: Sequence[RobotWorker], timeout: float, min_ready: int = 1, urgent: Sequence[RobotWorker] = ()
+) -> None:
+    """Blocks until ``min_ready`` busy workers (at least one) may have answered, or any busy one of
+    ``urgent`` (a teleoperated robot: its operator's next command waits for it), or ``timeout`` seconds:
+    the free-running loop's wait."""
     busy = [w for w in workers if w.busy]
     kinds = {type(w) for w in busy}
     if len(kinds) == 1:
-        kinds.pop().wait_any(busy, timeout)
+        urgent = [w for w in urgent if w.busy]
+        kinds.pop().wait_any(busy, timeout, max(1, min(min_ready, len(busy))), urgent)
     elif not busy:
         time.sleep(min(timeout, 0.01))
     # mixed back ends: do not block on one kind while another may have answered
@@ -161,17 +171,25 @@ class ProcessWorker(RobotWorker):
     def request_step(self, action: np.ndarray, hold: bool = False) -> None:
         self._send(("step", (np.asarray(action, dtype=np.float64), bool(hold))))
 
+    def _exited(self) -> WorkerFault | None:
+        if self._process.is_alive():
+            return None
+        return WorkerFault(f"worker process exited (code {self._process.exitcode})")
+
     def poll(self) -> RobotFrame | None:
-        if not self._process.is_alive():
-            raise WorkerFault(f"worker process exited (code {self._process.exitcode})")
+        # a busy worker that dies closes its end of the pipe, which then reads as ready: the liveness
+        # check (a waitpid per call) is only needed for idle workers and broken pipes
         if not self.busy:
+            if (fault := self._exited()) is not None:
+                raise fault
             return None
         try:
             if not self._conn.poll():
                 return None
             status, payload = self._conn.recv()
         except (EOFError, OSError) as exc:
-            raise WorkerFault(f"worker pipe broke: {exc}") from exc
+            self._process.join(timeout=0.5)  # the exit code, once the process is gone
+            raise self._exited() or WorkerFault(f"worker pipe broke: {exc}") from exc
         self.busy = False
         if status != "ok":
             raise WorkerFault(str(payload))
@@ -220,8 +238,18 @@ class ProcessWorker(RobotWorker):
         return True
 
     @classmethod
-    def wait_any(cls, workers: Sequence[RobotWorker], timeout: float) -> None:
-        wait([w._conn for w in workers if isinstance(w, ProcessWorker)], timeout=timeout)
+    def wait_any(
+        cls, workers: Sequence[RobotWorker], timeout: float, min_ready: int = 1, urgent: Sequence[RobotWorker] = ()
+    ) -> None:
+        conns = [w._conn for w in workers if isinstance(w, ProcessWorker)]
+        first = {id(w._conn) for w in urgent if isinstance(w, ProcessWorker)}
+        deadline = time.monotonic() + timeout
+        while conns:
+            ready = wait(conns, timeout=max(0.0, deadline - time.monotonic()))
+            min_ready -= len(ready)
+            if not ready or min_ready <= 0 or time.monotonic() >= deadline or any(id(c) in first for c in ready):
+                return
+            conns = [c for c in conns if c not in ready]
 
 
 # -- in the caller's thread ---------------------------------------------------------------------------------
@@ -288,4 +316,14 @@ def in_process_workers(make_task: Callable[[str], Task] | None = None) -> Worker
     return lambda robot_id, task: InProcessWorker(make_task(task))
 
 
-WORKERS: dict[str, Callable[..., WorkerFactory]] = {"process": process_workers, "in-process": in_process_workers}
+def pool_workers(niceness: int, robots_per_process: int) -> WorkerFactory:
+    from server.pool_workers import PoolFactory
+
+    return PoolFactory(niceness, robots_per_process)
+
+
+WORKERS: dict[str, Callable[..., WorkerFactory]] = {
+    "process": process_workers,
+    "pool": pool_workers,
+    "in-process": in_process_workers,
+}

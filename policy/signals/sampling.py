@@ -103,10 +103,10 @@ class DenoisingSignal(AssistanceSignal):
             center = self.policy.normalize_action(action[:, 0])
         else:
             center = self.policy.normalize_action(batch.current)
-        result = self.estimator(
+        result = self.estimator(  # the probe and the fits run where the policy's weights are
             self.policy.noise_prediction,
             batch.obs,
-            center,
+            center.to(self.policy.device),
             chunk=self.policy.config.action_horizon,
             alphas_cumprod=self.policy.schedule.alphas_cumprod,
         )

@@ -291,3 +291,46 @@ def test_actions_normalize_over_the_task_bounds_not_the_data():
         policy.action_normalizer.set_bounds(space.high, space.low)
     with pytest.raises(ValueError, match="10 values"):
         policy.action_normalizer.set_bounds(space.low[:3], space.high[:3])
+
+
+@pytest.mark.parametrize("length", [1, 4])
+def test_group_norm_fast_path_matches_torch_group_norm_with_gradients(length):
+    from policy.networks import _GroupNorm
+
+    torch.manual_seed(0)
+    ref, fast = torch.nn.GroupNorm(8, 64), _GroupNorm(8, 64)
+    with torch.no_grad():
+        ref.weight.normal_()
+        ref.bias.normal_()
+    fast.load_state_dict(ref.state_dict())
+    x = (torch.randn(300, 64, length) * 3 + 1).requires_grad_()
+    y = x.detach().clone().requires_grad_()
+    torch.testing.assert_close(fast(x), ref(y), rtol=1e-5, atol=1e-5)
+    fast(x).square().sum().backward()
+    ref(y).square().sum().backward()
+    torch.testing.assert_close(x.grad, y.grad, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(fast.weight.grad, ref.weight.grad, rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("network", ["unet", "mlp"])
+def test_the_network_path_creates_no_tensor_off_the_policy_device(network):
+    """Device-agnostic serving, checked without an accelerator: on PyTorch's ``meta`` device any CPU tensor
+    mixed into the computation raises, so a policy moved there must answer meta inputs on meta."""
+    policy = _policy(network).eval()
+    policy.to("meta")
+    assert policy.device.type == "meta"
+    obs = torch.zeros((3, 1, OBS_DIM), device="meta")
+    with torch.no_grad():
+        eps = policy.noise_prediction(obs, torch.zeros((3, 5, 1, 10), device="meta"), 0)
+        chunk = policy.predict_action_chunk(obs, noise=torch.zeros((3, 1, 10), device="meta"))
+    assert eps.device.type == "meta" and eps.shape == (3, 5, 1, 10)
+    assert chunk.device.type == "meta" and chunk.shape == (3, 1, 10)
+
+
+def test_a_policy_answers_on_the_device_of_its_input():
+    policy = _policy("unet").eval()
+    obs = torch.zeros((2, 1, OBS_DIM))
+    with torch.no_grad():
+        chunk = policy.predict_action_chunk(obs, noise=torch.zeros((2, 1, 10)))
+        eps = policy.noise_prediction(obs, torch.zeros((2, 4, 1, 10)), 0)
+    assert policy.device.type == "cpu" and chunk.device == obs.device and eps.device == obs.device

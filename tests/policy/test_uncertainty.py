@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from policy.gmm import fit_sklearn, fit_torch
+from policy.gmm import fit_mixtures, fit_numba, fit_sklearn, fit_torch
+from policy.gmm_numba import fit_all
 from policy.uncertainty import (
     UncertaintyConfig,
     UncertaintyEstimator,
@@ -34,7 +35,7 @@ ONE = _gaussian_eps(torch.tensor([[0.51, 0.50, 0.49]]))
 TWO = _gaussian_eps(torch.tensor([[0.5, 0.65, 0.5], [0.5, 0.35, 0.5]]))
 
 
-@pytest.mark.parametrize("backend", ["torch", "sklearn"])
+@pytest.mark.parametrize("backend", ["numba", "torch", "sklearn"])
 def test_single_gaussian_field_has_no_divergence(backend):
     out = UncertaintyEstimator(UncertaintyConfig(backend=backend))(ONE, None, CENTER)
     assert out.fit.n.tolist() == [1, 1, 1]
@@ -42,7 +43,7 @@ def test_single_gaussian_field_has_no_divergence(backend):
     assert torch.all(torch.isfinite(out.U)) and torch.all(out.U > 0)  # the within-mode variance remains
 
 
-@pytest.mark.parametrize("backend", ["torch", "sklearn"])
+@pytest.mark.parametrize("backend", ["numba", "torch", "sklearn"])
 def test_two_separated_gaussians_score_clearly_higher(backend):
     est = UncertaintyEstimator(UncertaintyConfig(backend=backend))
     one, two = est(ONE, None, CENTER), est(TWO, None, CENTER)
@@ -51,7 +52,7 @@ def test_two_separated_gaussians_score_clearly_higher(backend):
     assert torch.all(two.U > one.U + 0.5)
 
 
-@pytest.mark.parametrize("backend", ["torch", "sklearn"])
+@pytest.mark.parametrize("backend", ["numba", "torch", "sklearn"])
 @pytest.mark.parametrize("criterion", ["bic", "likelihood"])
 def test_every_backend_and_criterion_scores_without_nan(backend, criterion):
     cfg = UncertaintyConfig(backend=backend, criterion=criterion, num_samples=64)
@@ -67,16 +68,23 @@ def test_every_backend_and_criterion_scores_without_nan(backend, criterion):
         assert r.n >= 3
 
 
-def test_torch_and_sklearn_agree_on_seeded_synthetic_data():
-    g = torch.Generator().manual_seed(0)
-    blobs = []
-    for i in range(40):
+def _blobs(count: int = 40, seed: int = 0) -> tuple[torch.Tensor, list[int]]:
+    """(count, 128, 3) samples of 1, 2 or 3 separated blobs each, and each row's blob count."""
+    g = torch.Generator().manual_seed(seed)
+    blobs, counts = [], []
+    for i in range(count):
         n = i % 3 + 1
         centres = torch.randn((n, 3), generator=g) * 2
         lab = torch.randint(0, n, (128,), generator=g)
         blobs.append(centres[lab] + 0.2 * torch.randn((128, 3), generator=g))
-    x = torch.stack(blobs).double()
-    a, b = fit_torch(x, 4, "bic", seed=0), fit_sklearn(x, 4, "bic", seed=0)
+        counts.append(n)
+    return torch.stack(blobs).double(), counts
+
+
+@pytest.mark.parametrize("fit", [fit_torch, fit_numba], ids=["torch", "numba"])
+def test_backends_agree_with_sklearn_on_seeded_synthetic_data(fit):
+    x, _ = _blobs()
+    a, b = fit(x, 4, "bic", seed=0), fit_sklearn(x, 4, "bic", seed=0)
     assert (a.n == b.n).double().mean() >= 0.95
     same = a.n == b.n
     ua = mode_divergence(a.means, a.n) + 0.1 * mixture_variance(x, a.labels, a.weights)
@@ -86,6 +94,48 @@ def test_torch_and_sklearn_agree_on_seeded_synthetic_data():
     rows = torch.arange(len(x))[same]
     ll_a, ll_b = a.log_likelihood[rows, a.n[same] - 1], b.log_likelihood[rows, b.n[same] - 1]
     torch.testing.assert_close(ll_a, ll_b, rtol=1e-3, atol=0.5)
+
+
+def test_numba_finds_the_blobs_and_sklearn_s_means():
+    x, counts = _blobs()
+    a, b = fit_numba(x, 4, "bic", seed=0), fit_sklearn(x, 4, "bic", seed=0)
+    assert (a.n == b.n).double().mean() >= 0.95
+    assert (a.n == torch.tensor(counts)).double().mean() >= 0.95
+    # for the selected n both find the same optimum on separated blobs: same likelihood, same means
+    rows = torch.arange(len(x))
+    same = a.n == b.n
+    for i in rows[same].tolist():
+        n = int(a.n[i])
+        ma, mb = a.means[i, :n], b.means[i, :n]
+        dist = torch.cdist(ma, mb)  # the two back ends may order the modes differently
+        assert dist.min(dim=1).values.max() < 0.01  # blobs 2 apart, 0.2 wide: the same modes
+
+
+def test_numba_fit_of_a_robot_does_not_depend_on_its_batch():
+    x, _ = _blobs(6)
+    whole = fit_numba(x, 4, "bic", seed=3)
+    for i in (0, 4):
+        alone = fit_numba(x[i : i + 1], 4, "bic", seed=3)
+        assert torch.equal(alone.n, whole.n[i : i + 1])
+        assert torch.equal(alone.labels, whole.labels[i : i + 1])
+        assert torch.allclose(alone.means, whole.means[i : i + 1])
+
+
+def test_numba_fits_stop_on_their_own():
+    """Each candidate fit runs its own EM iterations: a single blob converges at once for n = 1, while the
+    over-split fits of the same data keep iterating (the batched torch EM runs all until the last stops)."""
+    x, counts = _blobs(9)
+    iters = fit_all(x.numpy(), 4)["em_iterations"]
+    assert (iters[:, 0] <= 3).all()  # one Gaussian: the first M-step is already the optimum
+    assert iters.max() > iters[:, 0].max()
+    assert len(np.unique(iters)) > 2
+
+
+def test_auto_backend_is_numba_on_the_cpu():
+    x, _ = _blobs(4)
+    auto = fit_mixtures(x, 4, "bic", "auto", seed=1)
+    numba = fit_numba(x, 4, "bic", seed=1)
+    assert torch.equal(auto.n, numba.n) and torch.equal(auto.labels, numba.labels)
 
 
 def test_torch_backend_is_deterministic():

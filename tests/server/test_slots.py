@@ -36,3 +36,25 @@ def test_a_policy_that_passed_its_check_loads_quietly(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="hitl.server"):
         load_slot(_settings(tmp_path, policy), policy, "lift-cube", 1)
     assert not [r for r in caplog.records if "calibration problem" in r.getMessage()]
+
+
+def test_a_device_this_machine_lacks_is_refused_with_its_name(tmp_path):
+    import pytest
+
+    from server.errors import ServiceError
+
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", 0.5)
+    settings = _settings(tmp_path, policy).model_copy(update={"device": "cuda:99"})  # no machine has that one
+    with pytest.raises(ServiceError, match="'cuda:99'") as err:
+        load_slot(settings, policy, "lift-cube", 1)
+    assert err.value.status == 422
+
+
+def test_the_device_setting_is_validated():
+    import pytest
+    from pydantic import ValidationError
+
+    for bad in ("gpu", "cuda:x", "mps"):
+        with pytest.raises(ValidationError, match="device"):
+            Settings(device=bad)
+    assert Settings(device="cuda:1").device == "cuda:1"

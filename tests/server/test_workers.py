@@ -1,4 +1,4 @@
-"""The RobotWorker contract on both back ends: reset, step, non-blocking poll, faults, priority."""
+"""The RobotWorker contract on every back end: reset, step, non-blocking poll, faults, priority."""
 
 import os
 import time
@@ -6,7 +6,8 @@ import time
 import numpy as np
 import pytest
 
-from server.workers import InProcessWorker, Priority, ProcessWorker, WorkerFault, wait_any
+from server.pool_workers import PoolFactory
+from server.workers import WORKERS, InProcessWorker, Priority, ProcessWorker, WorkerFault, wait_any
 from sim.frame import RobotFrame
 from tests.helpers import KinematicTask
 
@@ -58,3 +59,94 @@ def test_the_process_worker_keeps_the_contract_and_maps_priorities_to_niceness()
     finally:
         worker.kill()
         worker.join(5)
+
+
+def test_a_busy_process_worker_that_dies_faults_with_its_exit_code():
+    worker = ProcessWorker("lift-cube", name="robot-test", niceness=7)
+    try:
+        worker.request_reset(1)
+        hold = _answer(worker).hold
+        worker.request_step(hold)
+        os.kill(worker.pid, 9)  # dies with the step in flight
+        with pytest.raises(WorkerFault, match="exited"):
+            _answer(worker, timeout=10)
+        assert not worker.alive()
+    finally:
+        worker.kill()
+        worker.join(5)
+
+
+def test_pool_workers_keep_the_contract_and_share_a_process():
+    factory = WORKERS["pool"](7, 2)
+    a, b, c = factory(0, "lift-cube"), factory(1, "lift-cube"), factory(2, "lift-cube")
+    try:
+        assert a.host is b.host and c.host is not a.host  # two robots per process
+        assert a.prioritize(Priority.BACKGROUND)
+        assert os.getpriority(os.PRIO_PROCESS, a.host.process.pid) == 7
+        _contract(a)  # ends with a's error and kill: b, on the same process, carries on
+        b.request_reset(3)
+        c.request_reset(3)
+        wait_any([b, c], 120.0, min_ready=2)
+        fb, fc = b.poll(), c.poll()
+        assert fb is not None and fc is not None and fb.t == 0
+        np.testing.assert_allclose(fb.obs, fc.obs)  # same seed, same task: same frame
+        # a robot restarted on the host gets its own answers, not its dropped predecessor's
+        again = factory(0, "lift-cube")
+        assert again.host is a.host
+        again.request_reset(5)
+        assert _answer(again).t == 0
+    finally:
+        for w in (a, b, c):
+            w.close()
+        for w in (a, b, c):
+            w.join(5)
+
+
+def test_a_pool_process_that_dies_faults_each_of_its_robots_and_new_robots_get_a_new_one():
+    factory = PoolFactory(10, 4)
+    a, b = factory(0, "lift-cube"), factory(1, "lift-cube")
+    try:
+        a.request_reset(1)
+        b.request_reset(1)
+        wait_any([a, b], 120.0, min_ready=2)
+        assert a.poll() is not None and b.poll() is not None
+        a.request_step(np.zeros(10))  # in flight when the process dies
+        os.kill(a.host.process.pid, 9)
+        with pytest.raises(WorkerFault, match="exited"):
+            _answer(a, timeout=10)
+        with pytest.raises(WorkerFault):
+            b.poll()  # idle, but its process is gone
+        a.kill()
+        b.kill()
+        fresh = factory(0, "lift-cube")
+        assert fresh.host is not a.host and fresh.alive()
+        fresh.request_reset(1)
+        assert _answer(fresh).t == 0
+        fresh.close()
+        fresh.join(5)
+    finally:
+        a.kill()
+        b.kill()
+
+
+def test_a_pool_robot_whose_task_cannot_be_built_faults_alone():
+    factory = PoolFactory(10, 4)
+    bad, good = factory(0, "no-such-task"), factory(1, "lift-cube")
+    try:
+        bad.request_reset(1)
+        with pytest.raises(WorkerFault, match="no-such-task"):
+            _answer(bad, timeout=60)
+        good.request_reset(1)
+        assert _answer(good).t == 0
+        assert good.prioritize(Priority.CONTROL) in (True, False)  # raising needs CAP_SYS_NICE
+        good.request_step(_answer_hold(good))
+        assert _answer(good).t == 1
+    finally:
+        for w in (bad, good):
+            w.close()
+        good.join(5)
+
+
+def _answer_hold(worker) -> np.ndarray:
+    worker.request_reset(2)
+    return _answer(worker).hold

@@ -1,0 +1,54 @@
+"""``hitl bench uncertainty``: times what the fleet serves and compares the mixture back ends."""
+
+import subprocess
+import sys
+
+import numpy as np
+
+from policy.bench import bench_uncertainty, prepare_for_serving
+from policy.checkpoint import load_policy
+from policy.signals import load_signal
+from tests.helpers import tiny_policy_folder
+
+
+def test_the_bench_times_the_served_policy_and_signals(tmp_path):
+    folder = tiny_policy_folder(tmp_path / "policy", "lift-cube", 0.5)
+    policy, _ = load_policy(folder)
+    prepare_for_serving(policy, "cpu")
+    rng = np.random.default_rng(0)
+    obs = rng.uniform(-0.2, 1.0, (12, policy.config.obs_horizon, policy.config.obs_dim)).astype(np.float32)
+    centers = rng.uniform(0.3, 0.7, (12, 10)).astype(np.float32)
+    out = bench_uncertainty(
+        policy, obs, centers, (1, 4), repeats=1, agreement_states=12, asking=load_signal(policy, folder, "spread"),
+        progress=False,
+    )  # fmt: skip
+    assert out["traced"] and out["device"] == "cpu" and out["gmm_backend"] == "auto"
+    assert [r["fleet_size"] for r in out["fleet"]] == [1, 4]
+    for row in out["fleet"]:
+        total = row["ddim_ms_per_robot_step"] + row["denoising_signal_ms_per_robot_step"]
+        assert np.isclose(row["policy_plus_uncertainty_ms_per_robot_step"], total)
+        assert row["spread_ms_per_robot_step"] > 0 and row["gmm_sklearn_ms_per_robot_step"] > 0
+    assert out["goal"]["met"] is False  # no fleet of 16 was measured: the goal is not claimed
+    agree = out["agreement"]
+    assert agree["states"] == 12 and sum(agree["n_histogram"]["auto"]) == 12
+    assert 0.0 <= agree["auto_vs_sklearn"]["n_agreement"] <= 1.0
+
+
+def test_a_fleet_larger_than_the_states_is_refused(tmp_path):
+    import pytest
+
+    policy, _ = load_policy(tiny_policy_folder(tmp_path / "policy", "lift-cube", 0.5))
+    prepare_for_serving(policy, "cpu")
+    with pytest.raises(ValueError, match="fleet size 8 needs 8 states"):
+        bench_uncertainty(policy, np.zeros((4, 1, 26), np.float32), np.zeros((4, 10), np.float32), (8,), progress=False)
+
+
+def test_a_missing_device_is_a_clear_command_line_error(tmp_path):
+    folder = tiny_policy_folder(tmp_path / "policy", "lift-cube", 0.5)
+    for argv in (
+        ["bench", "uncertainty", "--policy", str(folder), "--device", "cuda:99", "--quiet"],
+        ["bench", "fleet", "--robots", "2", "--device", "cuda:99", "--quiet"],
+    ):
+        proc = subprocess.run([sys.executable, "-m", "hitl.cli", *argv], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2, proc.stderr
+        assert "'cuda:99'" in proc.stderr and "Traceback" not in proc.stderr

@@ -1,0 +1,13 @@
+"""``hitl bench fleet``'s measurement on a real fleet with the pool back end: steps, latency, memory."""
+
+from server.bench import fleet_throughput
+
+
+def test_a_pooled_fleet_steps_every_robot_and_reports_its_memory(tmp_path):
+    out = fleet_throughput("lift-cube", 3, 2.0, tmp_path / "var", worker="pool", robots_per_process=2)
+    assert out["worker"] == "pool" and out["worker_processes"] == 2  # 3 robots, 2 per process
+    assert out["env_steps_per_s"] > 0 and out["ticks_per_s"] > 0
+    assert out["commands_applied"] > 0  # robot 0 is teleoperated through the fleet's mailbox
+    assert out["server_rss_mb"] > out["server_rss_before_fleet_mb"] > 0
+    assert out["worker_peak_rss_mb"] > 0 and out["workers_rss_mb_per_robot"] > 0
+    assert out["workers_cpu_ms_per_env_step"] > 0
