@@ -281,14 +281,17 @@ class PoolFactory:
             raise ValueError(f"robots_per_process must be >= 1, got {robots_per_process}")
         self.niceness, self.per_process = niceness, robots_per_process
         self.hosts: list[_Host] = []
+        self._started = 0  # hosts started so far (their process names: robots-0, robots-1, ...)
 
     def __call__(self, robot_id: int, task: str) -> PoolWorker:
         for host in [h for h in self.hosts if not h.robots or not h.alive()]:
-            host.close() if host.alive() else None
+            if host.alive():
+                host.close()
             self.hosts.remove(host)
         room = [h for h in self.hosts if len(h.robots) < self.per_process]
         host = min(room, key=lambda h: len(h.robots)) if room else None
         if host is None:
-            host = _Host(f"robots-{len(self.hosts)}", self.niceness)
+            host = _Host(f"robots-{self._started}", self.niceness)
+            self._started += 1
             self.hosts.append(host)
         return PoolWorker(host, robot_id, task)

@@ -69,6 +69,44 @@ def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
         assert "faulted" in outcomes  # the interrupted episode is closed, not left open
 
 
+def test_a_dead_pool_process_faults_its_robots_which_restart_on_a_new_one(tmp_path):
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
+    settings = Settings(
+        data_dir=tmp_path / "var",
+        port=free_port(),
+        robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
+        control_hz=20,
+        budget_steps=100,
+        worker="pool",
+        robots_per_process=2,
+    )
+    sessions = _sessions(settings)
+    token = create_token(sessions, "op", "operator")
+    h = {"Authorization": f"Bearer {token}"}
+    with Service(settings) as svc:
+        api = svc.url + "/api/v1"
+        wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
+        assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
+        host = _worker_pid("robots-0")  # both robots' physics, in one process
+        assert host is not None and _worker_pid("robots-1") is None
+        os.kill(host, signal.SIGKILL)
+        for rid in (0, 1):  # each faults (then restarts after a 1 s backoff)
+            robot = wait_for(lambda rid=rid: (r := httpx.get(api + f"/robots/{rid}", headers=h).json())["fault"] and r)
+            assert "exited" in robot["fault"] or "broke" in robot["fault"]
+        with sessions() as s:
+            rows = s.query(SegmentRecord).all()
+            assert rows and all(r.status == "closed" and r.ended_by == "worker-fault" for r in rows)
+        for rid in (0, 1):  # both run again, on a new process
+            wait_for(
+                lambda rid=rid: (
+                    httpx.get(api + f"/robots/{rid}", headers=h).json()["mode"] in ("autonomous", "waiting")
+                ),
+                30,
+            )
+        restarted = [p for p in multiprocessing.active_children() if p.is_alive() and p.name.startswith("robots-")]
+        assert restarted and all(p.pid != host for p in restarted)
+
+
 def _serve(config, port):
     return subprocess.Popen(
         [sys.executable, "-m", "hitl.cli", "serve", "--config", str(config), "--port", str(port)],
