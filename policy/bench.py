@@ -25,6 +25,7 @@ from tqdm import tqdm
 from policy.devices import check_device
 from policy.diffusion_policy import DiffusionPolicy
 from policy.gmm import fit_mixtures
+from policy.gmm_numba import fit_all
 from policy.signals.base import SignalInput
 from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator, mixture_variance, mode_divergence
 
@@ -135,6 +136,7 @@ def bench_uncertainty(
         vectors = torch.cat(vec)
     for backend in ("auto", "torch", "sklearn"):
         ns[backend], us[backend] = _score(vectors if backend != "sklearn" else vectors.cpu(), cfg, backend)
+    iters = fit_all(vectors.cpu().numpy(), cfg.max_modes, cfg.seed, cfg.reg_covar)["em_iterations"]  # (M, N)
     at16 = next((r for r in rows if r["fleet_size"] == 16), None)
 
     def versus(a: str) -> dict:
@@ -165,6 +167,9 @@ def bench_uncertainty(
             "median_u": float(us["sklearn"].median()),
             "auto_vs_sklearn": versus("auto"),
             "torch_vs_sklearn": versus("torch"),
+            # the numba EM's iterations per candidate n (each fit stops on its own)
+            "numba_em_iterations_mean": iters.mean(axis=0).round(2).tolist(),
+            "numba_em_iterations_max": iters.max(axis=0).tolist(),
             "n_histogram": {k: np.bincount(v.numpy(), minlength=cfg.max_modes + 1)[1:].tolist() for k, v in ns.items()},
         },
     }

@@ -7,8 +7,8 @@ mean log-likelihood changes by less than ``tol`` (sklearn's rule). The arithmeti
 ``fit_torch`` and of sklearn's ``GaussianMixture(covariance_type="full")``: covariances regularised by
 ``reg_covar``, in float64.
 
-Seeding is per robot (``seed`` and the robot's row), so a robot's fit does not depend on which other
-robots share its batch. Compiled on first use and cached on disk (``cache=True``).
+Each robot's fits are seeded with ``seed`` afresh, so a robot's result depends on its own vectors only,
+not on which other robots share its batch. Compiled on first use and cached on disk (``cache=True``).
 """
 
 from __future__ import annotations
@@ -158,7 +158,7 @@ def _fit_all(x, max_modes, seed, reg, max_iter, tol, kmeans_iter, means_out, wei
     ll_out (B, F) (total log-likelihood) and iters (B, F) (EM iterations) for every n = f + 1."""
     b, s, d = x.shape
     for r in range(b):
-        np.random.seed(seed * 1_000_003 + r)
+        np.random.seed(seed)  # every robot's fits start from the same seed: its result is its data's alone
         xr = x[r]
         for f in range(max_modes):
             n = f + 1

@@ -32,6 +32,7 @@ def test_the_bench_times_the_served_policy_and_signals(tmp_path):
     agree = out["agreement"]
     assert agree["states"] == 12 and sum(agree["n_histogram"]["auto"]) == 12
     assert 0.0 <= agree["auto_vs_sklearn"]["n_agreement"] <= 1.0
+    assert len(agree["numba_em_iterations_mean"]) == 4 and min(agree["numba_em_iterations_max"]) >= 1
 
 
 def test_a_fleet_larger_than_the_states_is_refused(tmp_path):
