@@ -322,7 +322,8 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from policy.bench import bench_uncertainty, prepare_for_serving
+    from policy.bench import bench_uncertainty
+    from policy.devices import prepare_for_serving
     from policy.evaluate import rollout_policy
     from policy.signals import SignalError, load_signal
 

@@ -1,7 +1,7 @@
 """``hitl bench uncertainty``: what one robot-step of policy and uncertainty costs, as served.
 
 States (observation history + current end-effector action) come from real policy rollouts in the
-simulator. The policy is prepared as the fleet prepares it (``prepare_for_serving``: on its device,
+simulator. The policy is prepared as the fleet prepares it (``policy.devices.prepare_for_serving``: on its device,
 eval mode, the frozen TorchScript trace), and for each fleet size B the same B states are timed with
 
 - DDIM action sampling (``predict_action_chunk``), the policy's share of a step;
@@ -22,7 +22,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from policy.devices import check_device
 from policy.diffusion_policy import DiffusionPolicy
 from policy.gmm import fit_mixtures
 from policy.gmm_numba import fit_all
@@ -31,14 +30,6 @@ from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator, mixture_
 
 GOAL_MS_AT_16 = 2.5  # policy + uncertainty per robot-step at fleet 16 (docs/performance.md)
 GOAL_UNCERTAINTY_OVER_DDIM = 0.25  # the accelerator goal: uncertainty <= 0.25 x one DDIM action sample
-
-
-def prepare_for_serving(policy: DiffusionPolicy, device: str = "cpu", trace: bool = True) -> DiffusionPolicy:
-    """The policy as ``server.slots.load_slot`` serves it: on ``device``, eval mode, traced."""
-    policy.to(check_device(device)).eval()
-    if trace:
-        policy.freeze_for_inference()
-    return policy
 
 
 def _time(fn, repeats: int, device: torch.device) -> float:

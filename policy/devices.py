@@ -7,7 +7,12 @@ controller and the signals keep CPU tensors at their edges.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
+
+if TYPE_CHECKING:
+    from policy.diffusion_policy import DiffusionPolicy
 
 
 def check_device(name: str) -> torch.device:
@@ -24,3 +29,12 @@ def check_device(name: str) -> torch.device:
     elif device.type != "cpu":
         raise ValueError(f"device {name!r}: only cpu and cuda are served")
     return device
+
+
+def prepare_for_serving(policy: DiffusionPolicy, device: str = "cpu", trace: bool = True) -> DiffusionPolicy:
+    """The policy ready to serve: on ``device`` (ValueError when this machine lacks it), in eval mode, its
+    noise network traced and frozen when ``trace`` (``server.slots.load_slot`` and the benchmarks)."""
+    policy.to(check_device(device)).eval()
+    if trace:
+        policy.freeze_for_inference()
+    return policy

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from policy.checkpoint import CheckpointError, load_calibration, load_policy
 from policy.controller import Controller, ControllerConfig
-from policy.devices import check_device
+from policy.devices import prepare_for_serving
 from policy.diffusion_policy import DiffusionPolicy
 from policy.signals import SignalError, load_signal
 from server.errors import ServiceError
@@ -67,11 +67,9 @@ def load_slot(settings: Settings, path: Path, task: str, version: int, lineage: 
             422, f"policy {path} expects {policy.config.obs_dim}-dim observations, {task} gives {spec.obs_spec.dim}"
         )
     try:
-        policy.to(check_device(settings.device))
-    except ValueError as exc:
+        prepare_for_serving(policy, settings.device, settings.trace_policies)
+    except ValueError as exc:  # this machine lacks the device
         raise ServiceError(422, f"policy {path}: {exc}") from exc
-    if settings.trace_policies:
-        policy.freeze_for_inference()
     signals = {}
     for name in dict.fromkeys([settings.signal, "denoising", *settings.shadow_signals]):
         try:

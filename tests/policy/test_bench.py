@@ -5,8 +5,9 @@ import sys
 
 import numpy as np
 
-from policy.bench import bench_uncertainty, prepare_for_serving
+from policy.bench import bench_uncertainty
 from policy.checkpoint import load_policy
+from policy.devices import prepare_for_serving
 from policy.signals import load_signal
 from tests.helpers import tiny_policy_folder
 
