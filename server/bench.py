@@ -145,6 +145,8 @@ def fleet_throughput(
         workers_cpu = cpu_seconds(pids) - workers_cpu0
         server = memory_mb()
         workers = [memory_mb(pid) for pid in pids]
+        peaks = [w["peak_rss_mb"] for w in workers if w["peak_rss_mb"] is not None]
+        rss = [w["rss_mb"] for w in workers if w["rss_mb"] is not None]
     finally:
         stop.set()
         fleet.stop()
@@ -170,13 +172,13 @@ def fleet_throughput(
         "latency_target_ms": teleop_p50 + 20 if teleop_p50 is not None else None,
         "worker": worker,
         "worker_processes": len(workers),
-        # resident memory: the server process (with its policy, before and after the fleet started) and
-        # the physics processes (each holds one robot, or robots_per_process with the pool back end)
+        # resident memory: the server process before the fleet (and its policy) was built and at the end
+        # of the window, and the physics processes (one robot each, or robots_per_process when pooled)
         "server_rss_before_fleet_mb": rss_before,
         "server_rss_mb": server["rss_mb"],
         "server_peak_rss_mb": server["peak_rss_mb"],
-        "worker_peak_rss_mb": max((w["peak_rss_mb"] for w in workers), default=None),
-        "workers_rss_mb_per_robot": sum(w["rss_mb"] for w in workers) / n if workers else None,
+        "worker_peak_rss_mb": max(peaks, default=None),
+        "workers_rss_mb_per_robot": sum(rss) / n if rss else None,
     }
 
 

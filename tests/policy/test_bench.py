@@ -54,3 +54,21 @@ def test_a_missing_device_is_a_clear_command_line_error(tmp_path):
         proc = subprocess.run([sys.executable, "-m", "hitl.cli", *argv], capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2, proc.stderr
         assert "'cuda:99'" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_the_asking_signal_is_timed_when_the_policy_has_it_and_named_when_asked_for(tmp_path):
+    import json
+    import shutil
+
+    folder = tiny_policy_folder(tmp_path / "policy", "lift-cube", 0.5)
+    shutil.rmtree(folder / "signals" / "spread")
+    base = ["bench", "uncertainty", "--policy", str(folder), "--episodes", "1", "--fleet-sizes", "2"]
+    base += ["--repeats", "1", "--quiet", "--json"]
+    proc = subprocess.run([sys.executable, "-m", "hitl.cli", *base], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert "spread not timed" in out["asking_skipped"] and "spread_ms_per_robot_step" not in out["fleet"][0]
+    asked = subprocess.run(
+        [sys.executable, "-m", "hitl.cli", *base, "--asking", "spread"], capture_output=True, text=True, timeout=300
+    )
+    assert asked.returncode == 2 and "spread" in asked.stderr and "Traceback" not in asked.stderr
