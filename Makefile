@@ -53,7 +53,7 @@ policy-docs: install
 	$(BIN)/hitl plot uncertainty --policy runs/lift-cube --task lift-hammer --episodes 8 --out docs/figures
 	$(BIN)/hitl plot uncertainty --policy runs/cup-stack --task cup-stack --episodes 4 --out docs/figures
 	$(BIN)/hitl plot uncertainty --policy runs/open-drawer --task open-drawer --episodes 8 --out docs/figures
-	$(BIN)/hitl bench uncertainty --policy runs/lift-cube --task lift-hammer > docs/bench-uncertainty.json
+	$(BIN)/hitl bench uncertainty --policy runs/lift-cube --task lift-hammer --threads 1 --quiet > docs/bench-uncertainty.json
 	for p in lift-cube cup-stack open-drawer; do rm -rf policies/$$p && mkdir -p policies/$$p && cp runs/$$p/model.safetensors runs/$$p/config.json runs/$$p/calibration.json policies/$$p/ || exit 1; done
 
 # Regenerates docs/signals.md's inputs: every assistance signal trained and calibrated next to the
@@ -72,7 +72,7 @@ signals-docs: install
 	$(BIN)/hitl bench signals --policy runs/lift-cube --stac-policy runs/lift-cube-c8 --task lift-hammer --quiet > docs/bench-signals.json
 	$(BIN)/hitl assist --policy runs/lift-cube --task lift-hammer --driver denoising --shadow all --episodes 8 --plot docs/figures --quiet > docs/assist-lift-hammer.json
 	$(BIN)/hitl assist --policy runs/lift-cube-c8 --task lift-hammer --driver stac --shadow denoising --episodes 8 --quiet > docs/assist-lift-hammer-stac.json
-	$(BIN)/hitl bench fleet --robots 1,4,8,16 --quiet > docs/bench-fleet.json
+	$(BIN)/hitl bench fleet --robots 1,4,8,16 --seconds 15 --quiet > docs/bench-fleet.json
 
 # docs/benchmarks.md: the human-in-the-loop benchmark on the paper's protocol (every registered signal, the
 # five problem tasks, 20 seeded episodes each, a threshold sweep) and its figures in docs/img/. Needs the
