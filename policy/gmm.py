@@ -28,8 +28,8 @@ import numpy as np
 import torch
 
 CRITERIA = ("bic", "likelihood")
-# "auto": numba for tensors on the CPU (each fit stops on its own: 4.5x faster than the batched torch EM at
-# fleet 16), torch on an accelerator (one batched EM for the whole fleet)
+# "auto": numba for tensors on the CPU (each fit stops on its own; several times faster than the batched
+# torch EM there, docs/performance.md), torch on an accelerator (one batched EM for the whole fleet)
 BACKENDS = ("auto", "numba", "torch", "sklearn")
 
 
