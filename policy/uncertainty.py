@@ -216,8 +216,8 @@ class UncertaintyEstimator:
         alphas_cumprod: (K,) the noise schedule's ᾱ, needed when ``noise_step`` > 0 (the probe is
         scaled by sqrt(ᾱ_k), as the forward process scales clean actions; the field is read there).
 
-        The probe, the field and the mixture fits live on ``center``'s device (an accelerator's when the
-        caller puts it there); the returned batch is on the CPU."""
+        The probe, the field and the mixture fits run on ``center``'s device (an accelerator's when the
+        caller puts it there); the score is computed, and the batch returned, on the CPU."""
         cfg = self.config
         center = torch.as_tensor(center).float()
         if center.dim() != 2 or center.shape[1] < 3:
@@ -236,8 +236,9 @@ class UncertaintyEstimator:
         if cfg.directions == "unit":
             vectors = vectors / vectors.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         fit = fit_mixtures(vectors, cfg.max_modes, cfg.criterion, cfg.backend, cfg.seed, cfg.reg_covar)
-        fit = MixtureFit(*(t.to(center.device) for t in astuple_fit(fit)))
+        # the score and what the console draws are small: computed on the CPU (no copy when already there)
+        fit = MixtureFit(*(t.cpu() for t in astuple_fit(fit)))
+        vectors = vectors.cpu()
         d = mode_divergence(fit.means, fit.n)
         var_g = mixture_variance(vectors, fit.labels, fit.weights)
-        cpu = [t.cpu() for t in (samples.double(), vectors, d, var_g, d + cfg.alpha * var_g)]
-        return UncertaintyBatch(cpu[0], cpu[1], MixtureFit(*(t.cpu() for t in astuple_fit(fit))), *cpu[2:])
+        return UncertaintyBatch(samples.double().cpu(), vectors, fit, d, var_g, d + cfg.alpha * var_g)

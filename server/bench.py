@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
-import os
 import tempfile
 import threading
 import time
@@ -35,6 +34,7 @@ from tqdm import tqdm
 from server.db import make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.fleet import Fleet
+from server.procstats import TICKS_PER_SECOND, cpu_ticks, memory_mb, worker_pids
 from server.settings import RobotGroup, Settings
 from sim.spaces import TeleopCommand
 
@@ -125,8 +125,8 @@ def fleet_throughput(
         threading.Thread(target=operator, daemon=True).start()
         time.sleep(1.0)
         with fleet.lock:
-            pids = {pid for r in fleet.robots.values() if r.worker is not None and (pid := worker_pid(r.worker))}
-        workers_cpu0 = cpu_seconds(pids)
+            pids = worker_pids(fleet.robots.values())
+        workers_cpu0 = sum(cpu_ticks(pids).values())
         with fleet.lock:
             steps0 = fleet.env_steps
             ticks0 = fleet.ticks
@@ -142,9 +142,9 @@ def fleet_throughput(
             lat = np.array(fleet.robots[0].latencies)
             teleop_periods = np.array(fleet.robots[0].action_periods)
             cpu = fleet.loop_cpu_seconds - cpu0
-        workers_cpu = cpu_seconds(pids) - workers_cpu0
+        workers_cpu = (sum(cpu_ticks(pids).values()) - workers_cpu0) / TICKS_PER_SECOND
         server = memory_mb()
-        workers = [memory_mb(pid) for pid in pids]
+        workers = [memory_mb(pid) for pid in pids.values()]
         peaks = [w["peak_rss_mb"] for w in workers if w["peak_rss_mb"] is not None]
         rss = [w["rss_mb"] for w in workers if w["rss_mb"] is not None]
     finally:
@@ -180,44 +180,6 @@ def fleet_throughput(
         "worker_peak_rss_mb": max(peaks, default=None),
         "workers_rss_mb_per_robot": sum(rss) / n if rss else None,
     }
-
-
-def memory_mb(pid: int | str = "self") -> dict:
-    """Resident and peak resident memory of a process, in MB (Linux ``/proc``; None elsewhere)."""
-    out = {"rss_mb": None, "peak_rss_mb": None}
-    try:
-        text = Path(f"/proc/{pid}/status").read_text()
-    except OSError:
-        return out
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        if key in ("VmRSS", "VmHWM"):
-            out["rss_mb" if key == "VmRSS" else "peak_rss_mb"] = int(value.split()[0]) / 1024
-    return out
-
-
-def cpu_seconds(pids) -> float:
-    """User + system CPU seconds of the processes ``pids`` so far (Linux ``/proc``; 0 elsewhere)."""
-    tick, total = os.sysconf("SC_CLK_TCK"), 0.0
-    for pid in pids:
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        total += (int(fields[11]) + int(fields[12])) / tick
-    return total
-
-
-def worker_pid(worker) -> int | None:
-    """The process a worker's robot runs in (None for in-process robots)."""
-    from server.pool_workers import PoolWorker
-    from server.workers import ProcessWorker
-
-    if isinstance(worker, ProcessWorker):
-        return worker.pid
-    if isinstance(worker, PoolWorker):
-        return worker.host.process.pid
-    return None
 
 
 def _fleet_child(args: tuple, out) -> None:

@@ -50,6 +50,7 @@ import numpy as np
 from tqdm import tqdm
 
 from server.local_service import LocalService
+from server.procstats import TICKS_PER_SECOND, cpu_ticks, worker_pids
 
 API = "/api/v1"
 POLL_KINDS = ("robots", "robot", "view", "queue", "metrics")
@@ -275,19 +276,6 @@ def _client_process(p: dict, go, out) -> None:
 
 
 # -- the server (this process) ---------------------------------------------------------------------------
-def _cpu_ticks(pids: dict[str, int]) -> dict[str, int]:
-    """CPU clock ticks: the machine's busy time, and each process's (Linux ``/proc``; empty elsewhere)."""
-    out = {}
-    with contextlib.suppress(OSError, ValueError, IndexError):
-        v = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
-        out["machine"] = sum(v) - v[3] - v[4]  # all but idle and iowait
-    for name, pid in pids.items():
-        with contextlib.suppress(OSError, ValueError, IndexError):
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            out[name] = int(fields[11]) + int(fields[12])  # utime + stime
-    return out
-
-
 class _Window:
     """The fleet's control rate over a measurement window (drained every second under the fleet lock), and
     where the machine's CPU went: this machine may be shared, and the report says how busy it was."""
@@ -297,7 +285,7 @@ class _Window:
 
         self.fleet = fleet
         self.pids = {"server_process": os.getpid()} | ({"client_process": client_pid} if client_pid else {})
-        self.pids |= {f"worker{r.id}": r.worker.pid for r in fleet.robots.values() if getattr(r.worker, "pid", None)}
+        self.pids |= worker_pids(fleet.robots.values())
 
     def start(self) -> None:
         f = self.fleet
@@ -307,7 +295,7 @@ class _Window:
             f.tick_periods.clear()
             self.steps0, self.ticks0, self.loop_cpu0 = f.env_steps, f.ticks, f.loop_cpu_seconds
         self.periods, self.ticks, self.modes, self.samples = [], [], Counter(), 0
-        self.t0, self.cpu0 = time.monotonic(), _cpu_ticks(self.pids)
+        self.t0, self.cpu0 = time.monotonic(), cpu_ticks(self.pids)
 
     def drain(self) -> None:
         f = self.fleet
@@ -340,8 +328,8 @@ class _Window:
         """Cores used on average: the machine, this benchmark's processes, and the rest (other users)."""
         import os
 
-        t1, hz = _cpu_ticks(self.pids), os.sysconf("SC_CLK_TCK")
-        used = {k: (t1[k] - self.cpu0[k]) / hz / seconds for k in t1 if k in self.cpu0}
+        t1 = cpu_ticks(self.pids)
+        used = {k: (t1[k] - self.cpu0[k]) / TICKS_PER_SECOND / seconds for k in t1 if k in self.cpu0}
         out = {"machine_cores": os.cpu_count(), "machine_busy": used.pop("machine", None)}
         out["server_process"] = used.pop("server_process", None)
         out["client_process"] = used.pop("client_process", None)

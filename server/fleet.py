@@ -84,15 +84,7 @@ class Fleet:
         self.loop_cpu_seconds = 0.0  # CPU time of the control loop's ticks
         self.operator_busy: dict[str, float] = {}  # seconds in control, per operator
         self.operator_since: dict[str, float] = {}  # first claim, per operator
-        if workers is None:
-            factory = WORKERS[settings.worker]
-            if settings.worker == "process":
-                workers = factory(settings.worker_niceness)
-            elif settings.worker == "pool":
-                workers = factory(settings.worker_niceness, settings.robots_per_process)
-            else:
-                workers = factory()
-        self._make_worker = workers
+        self._make_worker = workers if workers is not None else WORKERS[settings.worker](settings)
         self._build()
 
     # -- set-up -------------------------------------------------------------------------------------------

@@ -186,6 +186,11 @@ class PoolWorker(RobotWorker):
         host.send(("open", robot_id, 0, task))
 
     @property
+    def pid(self) -> int | None:
+        """The host process this robot's physics runs in (shared with the host's other robots)."""
+        return self.host.process.pid
+
+    @property
     def _key(self) -> tuple[int, int]:
         return (self.robot_id, self._seq)
 

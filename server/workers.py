@@ -27,11 +27,15 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from enum import StrEnum
 from multiprocessing.connection import Connection, wait
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sim.env import Task
 from sim.frame import RobotFrame
+
+if TYPE_CHECKING:
+    from server.settings import Settings
 
 log = logging.getLogger("hitl.workers")
 
@@ -322,8 +326,9 @@ def pool_workers(niceness: int, robots_per_process: int) -> WorkerFactory:
     return PoolFactory(niceness, robots_per_process)
 
 
-WORKERS: dict[str, Callable[..., WorkerFactory]] = {
-    "process": process_workers,
-    "pool": pool_workers,
-    "in-process": in_process_workers,
+# the settings' ``worker`` name -> the factory built from the settings
+WORKERS: dict[str, Callable[[Settings], WorkerFactory]] = {
+    "process": lambda s: process_workers(s.worker_niceness),
+    "pool": lambda s: pool_workers(s.worker_niceness, s.robots_per_process),
+    "in-process": lambda s: in_process_workers(),
 }

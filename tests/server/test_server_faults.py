@@ -32,22 +32,31 @@ def _sessions(settings):
     return session_factory(make_engine(settings.db_url))
 
 
-def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
+def _asking_fleet(tmp_path, count: int = 1, **extra):
+    """Settings of robots that ask at once (threshold -1), their database, and an operator's headers."""
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
     settings = Settings(
         data_dir=tmp_path / "var",
         port=free_port(),
-        robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
+        robots=[RobotGroup(task="lift-cube", count=count, policy=policy)],
         control_hz=20,
         budget_steps=100,
+        **extra,
     )
     sessions = _sessions(settings)
-    token = create_token(sessions, "op", "operator")
-    h = {"Authorization": f"Bearer {token}"}
+    return settings, sessions, {"Authorization": f"Bearer {create_token(sessions, 'op', 'operator')}"}
+
+
+def _claim_robot_0(api, h) -> None:
+    wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
+    assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
+
+
+def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
+    settings, sessions, h = _asking_fleet(tmp_path)
     with Service(settings) as svc:
         api = svc.url + "/api/v1"
-        wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
-        assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
+        _claim_robot_0(api, h)
         pid = _worker_pid("robot-0")  # the service's worker process, as the OS shows it
         os.kill(pid, signal.SIGKILL)
         robot = wait_for(lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] == "faulted" and r)
@@ -70,23 +79,10 @@ def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
 
 
 def test_a_dead_pool_process_faults_its_robots_which_restart_on_a_new_one(tmp_path):
-    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
-    settings = Settings(
-        data_dir=tmp_path / "var",
-        port=free_port(),
-        robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
-        control_hz=20,
-        budget_steps=100,
-        worker="pool",
-        robots_per_process=2,
-    )
-    sessions = _sessions(settings)
-    token = create_token(sessions, "op", "operator")
-    h = {"Authorization": f"Bearer {token}"}
+    settings, sessions, h = _asking_fleet(tmp_path, 2, worker="pool", robots_per_process=2)
     with Service(settings) as svc:
         api = svc.url + "/api/v1"
-        wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
-        assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
+        _claim_robot_0(api, h)
         host = _worker_pid("robots-0")  # both robots' physics, in one process
         assert host is not None and _worker_pid("robots-1") is None
         os.kill(host, signal.SIGKILL)
