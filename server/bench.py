@@ -34,7 +34,7 @@ from tqdm import tqdm
 from server.db import make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.fleet import Fleet
-from server.procstats import TICKS_PER_SECOND, cpu_ticks, memory_mb, worker_pids
+from server.procstats import memory_mb, processes_cpu_seconds, worker_pids
 from server.settings import RobotGroup, Settings
 from sim.spaces import TeleopCommand
 
@@ -126,7 +126,7 @@ def fleet_throughput(
         time.sleep(1.0)
         with fleet.lock:
             pids = worker_pids(fleet.robots.values())
-        workers_cpu0 = sum(cpu_ticks(pids).values())
+        workers_cpu0 = processes_cpu_seconds(pids)
         with fleet.lock:
             steps0 = fleet.env_steps
             ticks0 = fleet.ticks
@@ -142,7 +142,7 @@ def fleet_throughput(
             lat = np.array(fleet.robots[0].latencies)
             teleop_periods = np.array(fleet.robots[0].action_periods)
             cpu = fleet.loop_cpu_seconds - cpu0
-        workers_cpu = (sum(cpu_ticks(pids).values()) - workers_cpu0) / TICKS_PER_SECOND
+        workers_cpu = processes_cpu_seconds(pids) - workers_cpu0
         server = memory_mb()
         workers = [memory_mb(pid) for pid in pids.values()]
         peaks = [w["peak_rss_mb"] for w in workers if w["peak_rss_mb"] is not None]

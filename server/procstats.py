@@ -22,6 +22,12 @@ def cpu_ticks(pids: dict[str, int]) -> dict[str, int]:
     return out
 
 
+def processes_cpu_seconds(pids: dict[str, int]) -> float:
+    """User + system CPU seconds of the named processes together (not the machine's busy time)."""
+    ticks = cpu_ticks(pids)
+    return sum(ticks.get(name, 0) for name in pids) / TICKS_PER_SECOND
+
+
 def memory_mb(pid: int | str = "self") -> dict:
     """Resident (``rss_mb``) and peak resident (``peak_rss_mb``) memory of a process, in MB."""
     out = {"rss_mb": None, "peak_rss_mb": None}

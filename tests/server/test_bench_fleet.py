@@ -1,5 +1,7 @@
 """``hitl bench fleet``'s measurement on a real fleet with the pool back end: steps, latency, memory."""
 
+import os
+
 from server.bench import fleet_throughput
 
 
@@ -11,3 +13,7 @@ def test_a_pooled_fleet_steps_every_robot_and_reports_its_memory(tmp_path):
     assert out["server_rss_mb"] > out["server_rss_before_fleet_mb"] > 0
     assert out["worker_peak_rss_mb"] > 0 and out["workers_rss_mb_per_robot"] > 0
     assert out["workers_cpu_ms_per_env_step"] > 0
+    # the physics processes' CPU only: together with the loop's, no more than the machine's cores give
+    cores = os.cpu_count() or 1
+    used = (out["workers_cpu_ms_per_env_step"] + out["loop_cpu_ms_per_env_step"]) * out["env_steps_per_s"] / 1e3
+    assert used <= cores * 1.05
