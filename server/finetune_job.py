@@ -2,8 +2,9 @@
 recalibrated, evaluated and put through the promotion gate, all recorded in the registry.
 
 One job at a time, across processes and machines: the job holds the database lease ``finetune``
-(``server.lease``) from start to end, renewed by a heartbeat; its writes to the registry check the
-lease first. A job that is interrupted (killed, crashed, lease lost) leaves its row ``running`` or
+(``server.lease``) from start to end, renewed by a heartbeat. Its writes to the registry (the new
+version, its promotion) are fenced: each commits in the transaction that renews the lease, or not at
+all. A job that is interrupted (killed, crashed, lease lost) leaves its row ``running`` or
 ``interrupted`` and its training state in ``work_dir``; the next run for the same lineage, parent
 and data resumes it from its last checkpoint.
 
@@ -411,11 +412,12 @@ class FinetuneRunner:
             evaluation=evaluation["candidate"],
             command=request.command,
             status_reason=status_reason,
+            lease=beat.lease,
         )
         promoted = bool(decision.promote and request.promote)
         if promoted:
             beat.check()
-            registry.promote(self.sessions, row.id, status_reason)
+            registry.promote(self.sessions, row.id, status_reason, lease=beat.lease)
         gate_doc = decision.to_dict() | {"promoted": promoted, "auto_promote": request.promote}
         self._update(
             job_id,

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 from sqlalchemy import and_, insert, or_, select, update
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import sessionmaker
+from sqlalchemy.orm import Session, sessionmaker
 
 from server.db import JobLease, db_epoch
 
@@ -74,14 +74,23 @@ def _held(lease: Lease):
 def renew(sessions: sessionmaker, lease: Lease) -> None:
     """Extends the lease by its ttl from now (the database's now); LeaseLost if it is no longer held."""
     with sessions() as s:
-        done = s.execute(
-            update(JobLease)
-            .where(_held(lease), JobLease.expires_at >= db_epoch())
-            .values(expires_at=db_epoch() + lease.ttl)
-            .execution_options(synchronize_session=False)
-        )
+        renew_in(s, lease)
         s.commit()
+
+
+def renew_in(s: Session, lease: Lease) -> None:
+    """``renew`` inside the caller's transaction, for a write that must happen only under the lease (a
+    fenced write): the caller commits both together, or rolls both back on LeaseLost. The update locks
+    the lease's row until that commit (PostgreSQL; SQLite holds its write lock), so no other holder can
+    take the lease between this check and the write."""
+    done = s.execute(
+        update(JobLease)
+        .where(_held(lease), JobLease.expires_at >= db_epoch())
+        .values(expires_at=db_epoch() + lease.ttl)
+        .execution_options(synchronize_session=False)
+    )
     if done.rowcount != 1:
+        s.rollback()
         raise LeaseLost(f"lease {lease.name!r} (fence {lease.fence}) is no longer held by {lease.owner}")
 
 

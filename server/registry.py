@@ -24,6 +24,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from policy.checkpoint import CheckpointError, read_info
 from server.db import FinetuneJob, PolicyVersion
 from server.errors import ServiceError
+from server.lease import Lease, renew_in
 
 _REF = re.compile(r"^(?P<name>[A-Za-z0-9][A-Za-z0-9._-]{0,255})(?:@(?P<sel>active|[1-9][0-9]{0,8}))?$")
 
@@ -124,12 +125,18 @@ def register(
     name: str | None = None,
     parent: int | None = None,
     status: str = "candidate",
+    lease: Lease | None = None,
     **fields,
 ) -> PolicyVersion:
     """A new version of lineage ``name`` (default: the parent's lineage, else the folder's name), numbered
-    one above its lineage's last; the same folder again returns the version already registered."""
+    one above its lineage's last; the same folder again returns the version already registered.
+
+    lease: a fenced write (the fine-tuning job's): the version is written in the same transaction that
+    renews the lease, or not at all (LeaseLost)."""
     key = str(Path(path).resolve())
     with sessions() as s:
+        if lease is not None:
+            renew_in(s, lease)
         parent_row = s.get(PolicyVersion, parent) if parent is not None else None
         if parent is not None and parent_row is None:
             raise ServiceError(404, f"no policy version {parent}")
@@ -148,9 +155,14 @@ def register(
         return row
 
 
-def promote(sessions: sessionmaker, ref: str | PolicyRef | int, reason: str | None = None) -> PolicyVersion:
-    """Makes the version active and retires the lineage's previously active one."""
+def promote(
+    sessions: sessionmaker, ref: str | PolicyRef | int, reason: str | None = None, lease: Lease | None = None
+) -> PolicyVersion:
+    """Makes the version active and retires the lineage's previously active one (``lease``: a fenced
+    write, as in ``register``)."""
     with sessions() as s:
+        if lease is not None:
+            renew_in(s, lease)
         row = s.get(PolicyVersion, ref) if isinstance(ref, int) else find(s, _ref(ref))
         if row is None:
             raise ServiceError(404, f"no policy version {ref}")

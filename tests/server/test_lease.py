@@ -8,8 +8,12 @@ import time
 import pytest
 from sqlalchemy import text
 
+from policy.checkpoint import save_policy
+from server import registry
 from server.db import make_engine, migrate, session_factory
+from server.errors import ServiceError
 from server.lease import Heartbeat, LeaseLost, acquire, holder, release, renew
+from tests.helpers import tiny_policy
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -49,6 +53,25 @@ def test_an_expired_lease_is_taken_over_and_fences_out_the_old_holder(sessions):
     with pytest.raises(LeaseLost):
         renew(s, a)
     renew(s, b)  # still b's
+
+
+def test_a_fenced_registry_write_commits_only_under_the_lease(sessions, tmp_path):
+    s, _ = sessions
+    folder = tmp_path / "lineage-x"
+    save_policy(tiny_policy(), folder)
+    a = acquire(s, "job", "a", ttl=0.5)
+    time.sleep(0.7)
+    b = acquire(s, "job", "b", ttl=30)  # a paused past its ttl, and b took the lease over
+    with pytest.raises(LeaseLost):
+        registry.register(s, folder, "lift-cube", name="fenced-x", lease=a)
+    with pytest.raises(ServiceError, match="none is registered"):  # nothing written by the fenced-out holder
+        registry.versions(s, "fenced-x")
+    row = registry.register(s, folder, "lift-cube", name="fenced-x", lease=b)
+    assert row.ref == "fenced-x@1" and 20 < holder(s, "job")[1] <= 30  # written, and the lease renewed
+    with pytest.raises(LeaseLost):
+        registry.promote(s, row.id, "gate passed", lease=a)
+    assert registry.by_id(s, row.id).status == "candidate"
+    assert registry.promote(s, row.id, "gate passed", lease=b).status == "active"
 
 
 def test_a_heartbeat_keeps_the_lease_past_its_ttl(sessions):
