@@ -155,9 +155,14 @@ class DiffusionPolicy(nn.Module):
     # -- serving: a traced copy of the noise network ---------------------------------------
     def freeze_for_inference(self) -> None:
         """Traces the noise network with TorchScript and freezes its weights, for no-grad calls in
-        eval mode (DDIM and probes). Same outputs; on CPU it removes most of the per-module Python
-        dispatch that dominates at fleet batch sizes. Switching to training mode, loading weights
-        or moving the policy drops the traced copy (it holds the weights it was traced with)."""
+        eval mode (DDIM and probes). Switching to training mode, loading weights or moving the
+        policy drops the traced copy (it holds the weights it was traced with).
+
+        On CPU the trace also gets TorchScript's inference passes (``optimize_for_inference``:
+        oneDNN linear layers with prepacked weights), which cut the fixed cost of a call: one
+        DDIM action for one robot took 4.06 ms frozen and 2.66 ms optimized (``hitl bench
+        uncertainty``, fleet 1). Outputs agree with the eager module to about 2e-6, the size of the
+        differences the eager module already shows between batch sizes."""
         if self.training:
             raise RuntimeError("freeze_for_inference needs eval mode (call .eval() first)")
         cfg = self.config
@@ -169,7 +174,8 @@ class DiffusionPolicy(nn.Module):
             # TorchScript is deprecated in favour of torch.compile, which compiles for tens of seconds per
             # policy on a small CPU and again for new batch shapes; tracing is instant
             warnings.simplefilter("ignore", DeprecationWarning)
-            traced = torch.jit.freeze(torch.jit.trace(self.net, (x, k, cond), check_trace=False))
+            traced = torch.jit.trace(self.net, (x, k, cond), check_trace=False)
+            traced = torch.jit.optimize_for_inference(traced) if self.device.type == "cpu" else torch.jit.freeze(traced)
         self.__dict__["_traced"] = traced  # not a submodule: never in the state dict
 
     def _eps(self, x: torch.Tensor, k: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
