@@ -10,13 +10,16 @@ eval mode, the frozen TorchScript trace), and for each fleet size B the same B s
   each back end on identical vectors (``auto``, the served one, and ``torch`` / ``sklearn``);
 - the fleet's asking signal (``spread``), when the policy has it;
 
-and the back ends are compared on identical vectors: selected n and U. Per robot-step figures are the
-batch's median wall time divided by B.
+and the back ends are compared on identical vectors: selected n and U. With a probe other than the
+paper's S = 128 (``--samples``), U is also compared with U at S = 128 on the same states
+(``agreement.versus_s128``: rank correlation, and whether both would flag the same states). Per
+robot-step figures are the batch's median wall time divided by B.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -30,6 +33,8 @@ from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator, mixture_
 
 GOAL_MS_AT_16 = 2.5  # policy + uncertainty per robot-step at fleet 16 (docs/performance.md)
 GOAL_UNCERTAINTY_OVER_DDIM = 0.25  # the accelerator goal: uncertainty <= 0.25 x one DDIM action sample
+REFERENCE_SAMPLES = 128  # the paper's probe size S, the faithful configuration's
+FLAGGED_QUANTILE = 0.95  # the calibrated threshold's quantile: the states a signal would ask on
 
 
 def _time(fn, repeats: int, device: torch.device) -> float:
@@ -53,6 +58,36 @@ def _score(vectors: torch.Tensor, cfg: UncertaintyConfig, backend: str):
     fit = fit_mixtures(vectors, cfg.max_modes, cfg.criterion, backend, cfg.seed, cfg.reg_covar)
     u = mode_divergence(fit.means, fit.n) + cfg.alpha * mixture_variance(vectors, fit.labels, fit.weights)
     return fit.n.cpu(), u.cpu()
+
+
+def _vectors(policy: DiffusionPolicy, est: UncertaintyEstimator, obs: np.ndarray, centers: np.ndarray) -> torch.Tensor:
+    """The denoising field's position vectors at ``est``'s probe: (M, S, 3) float64, 64 states a call."""
+    cfg, chunk, out = est.config, policy.config.action_horizon, []
+    with torch.no_grad():
+        for i in range(0, len(obs), 64):
+            _, actions = est.probe(torch.as_tensor(centers[i : i + 64]).to(policy.device), chunk)
+            eps = policy.noise_prediction(torch.as_tensor(obs[i : i + 64]), actions, 0)
+            out.append(eps[:, :, cfg.chunk_step, :3].double())
+    return torch.cat(out)
+
+
+def versus_reference(u: torch.Tensor, ref: torch.Tensor) -> dict:
+    """How U at a smaller probe agrees with U at S = 128 on the same states, threshold-free: Spearman's
+    rank correlation, and the overlap of the states each would flag (above its own 95% quantile, as
+    each configuration's threshold would be calibrated) as a share of the reference's flagged states."""
+    from scipy.stats import spearmanr
+
+    a, b = u.double().numpy(), ref.double().numpy()
+    flagged = a > np.quantile(a, FLAGGED_QUANTILE)
+    flagged_ref = b > np.quantile(b, FLAGGED_QUANTILE)
+    return {
+        "states": len(a),
+        "spearman": float(spearmanr(a, b).statistic),
+        "flagged_by_reference": int(flagged_ref.sum()),
+        "flagged_overlap": float((flagged & flagged_ref).sum() / max(1, flagged_ref.sum())),
+        "median_u": float(np.median(a)),
+        "median_u_reference": float(np.median(b)),
+    }
 
 
 def bench_uncertainty(
@@ -118,16 +153,15 @@ def bench_uncertainty(
     # agreement of the back ends on identical vectors
     m = min(agreement_states, len(obs))
     ns, us = {}, {}
-    with torch.no_grad():
-        vec = []
-        for i in range(0, m, 64):
-            _, actions = est.probe(torch.as_tensor(centers[i : min(i + 64, m)]).to(device), chunk)
-            eps = policy.noise_prediction(torch.as_tensor(obs[i : min(i + 64, m)]), actions, 0)
-            vec.append(eps[:, :, cfg.chunk_step, :3].double())
-        vectors = torch.cat(vec)
+    vectors = _vectors(policy, est, obs[:m], centers[:m])
     for backend in ("auto", "torch", "sklearn"):
         ns[backend], us[backend] = _score(vectors if backend != "sklearn" else vectors.cpu(), cfg, backend)
     iters = fit_all(vectors.cpu().numpy(), cfg.max_modes, cfg.seed, cfg.reg_covar)["em_iterations"]  # (M, N)
+    reference = None
+    if cfg.num_samples != REFERENCE_SAMPLES:  # a smaller (or larger) probe: does it flag the same states?
+        ref_est = UncertaintyEstimator(replace(cfg, num_samples=REFERENCE_SAMPLES))
+        _, u_ref = _score(_vectors(policy, ref_est, obs[:m], centers[:m]), ref_est.config, cfg.backend)
+        reference = versus_reference(us["auto"], u_ref)
     at16 = next((r for r in rows if r["fleet_size"] == 16), None)
     at32 = next((r for r in rows if r["fleet_size"] == 32), None)
 
@@ -166,5 +200,7 @@ def bench_uncertainty(
             "numba_em_iterations_mean": iters.mean(axis=0).round(2).tolist(),
             "numba_em_iterations_max": iters.max(axis=0).tolist(),
             "n_histogram": {k: np.bincount(v.numpy(), minlength=cfg.max_modes + 1)[1:].tolist() for k, v in ns.items()},
+            # with --samples other than 128: U against U at S = 128 on the same states (None at 128)
+            f"versus_s{REFERENCE_SAMPLES}": reference,
         },
     }

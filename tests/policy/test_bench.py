@@ -4,11 +4,13 @@ import subprocess
 import sys
 
 import numpy as np
+import torch
 
-from policy.bench import bench_uncertainty
+from policy.bench import bench_uncertainty, versus_reference
 from policy.checkpoint import load_policy
 from policy.devices import prepare_for_serving
 from policy.signals import load_signal
+from policy.uncertainty import UncertaintyConfig
 from tests.helpers import tiny_policy_folder
 
 
@@ -35,6 +37,31 @@ def test_the_bench_times_the_served_policy_and_signals(tmp_path):
     assert agree["states"] == 12 and sum(agree["n_histogram"]["auto"]) == 12
     assert 0.0 <= agree["auto_vs_sklearn"]["n_agreement"] <= 1.0
     assert len(agree["numba_em_iterations_mean"]) == 4 and min(agree["numba_em_iterations_max"]) >= 1
+    assert agree["versus_s128"] is None  # the probe is the paper's S = 128: nothing to compare with
+
+
+def test_a_smaller_probe_is_compared_with_the_papers_on_the_same_states(tmp_path):
+    policy, _ = load_policy(tiny_policy_folder(tmp_path / "policy", "lift-cube", 0.5))
+    prepare_for_serving(policy, "cpu")
+    rng = np.random.default_rng(1)
+    obs = rng.uniform(-0.2, 1.0, (40, policy.config.obs_horizon, policy.config.obs_dim)).astype(np.float32)
+    centers = rng.uniform(0.3, 0.7, (40, 10)).astype(np.float32)
+    out = bench_uncertainty(policy, obs, centers, (2,), 1, UncertaintyConfig(num_samples=16), 40, progress=False)
+    versus = out["agreement"]["versus_s128"]
+    assert out["samples_per_robot"] == 16 and versus["states"] == 40
+    assert -1.0 <= versus["spearman"] <= 1.0 and 0.0 <= versus["flagged_overlap"] <= 1.0
+    assert versus["flagged_by_reference"] == 2  # above the 95% quantile of 40 states
+
+
+def test_agreement_with_the_reference_probe_golden_values():
+    u = torch.arange(100, dtype=torch.float64)
+    same = versus_reference(u * 3.0, u)  # a rescaled U ranks and flags exactly as the reference
+    assert np.isclose(same["spearman"], 1.0) and same["flagged_overlap"] == 1.0 and same["flagged_by_reference"] == 5
+    flipped = versus_reference(-u, u)  # the reverse order flags none of the reference's states
+    assert np.isclose(flipped["spearman"], -1.0) and flipped["flagged_overlap"] == 0.0
+    half = u.clone()
+    half[[99, 98]] = -1.0  # two of the reference's five top states fall to the bottom
+    assert versus_reference(half, u)["flagged_overlap"] == 3 / 5
 
 
 def test_a_fleet_larger_than_the_states_is_refused(tmp_path):
