@@ -38,6 +38,7 @@ def test_the_bench_times_the_served_policy_and_signals(tmp_path):
     assert 0.0 <= agree["auto_vs_sklearn"]["n_agreement"] <= 1.0
     assert len(agree["numba_em_iterations_mean"]) == 4 and min(agree["numba_em_iterations_max"]) >= 1
     assert agree["versus_s128"] is None  # the probe is the paper's S = 128: nothing to compare with
+    assert agree["s128_redrawn"]["states"] == 12 and -1.0 <= agree["s128_redrawn"]["spearman"] <= 1.0
 
 
 def test_a_smaller_probe_is_compared_with_the_papers_on_the_same_states(tmp_path):
