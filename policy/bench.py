@@ -74,9 +74,10 @@ def _vectors(policy: DiffusionPolicy, est: UncertaintyEstimator, obs: np.ndarray
 
 
 def versus_reference(u: torch.Tensor, ref: torch.Tensor) -> dict:
-    """How U at a smaller probe agrees with U at S = 128 on the same states, threshold-free: Spearman's
-    rank correlation, and the overlap of the states each would flag (above its own 95% quantile, as
-    each configuration's threshold would be calibrated) as a share of the reference's flagged states."""
+    """u, ref: (M,) U of two configurations (or two probe draws) on the same M states -> how ``u``
+    agrees with ``ref``, threshold-free: Spearman's rank correlation, and the overlap of the states
+    each would flag (above its own 95% quantile, as each configuration's threshold would be
+    calibrated) as a share of the reference's flagged states."""
     from scipy.stats import spearmanr
 
     a, b = u.double().numpy(), ref.double().numpy()
