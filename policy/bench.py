@@ -1,8 +1,9 @@
 """``hitl bench uncertainty``: what one robot-step of policy and uncertainty costs, as served.
 
 States (observation history + current end-effector action) come from real policy rollouts in the
-simulator. The policy is prepared as the fleet prepares it (``policy.devices.prepare_for_serving``: on its device,
-eval mode, the frozen TorchScript trace), and for each fleet size B the same B states are timed with
+simulator. The policy is prepared as the fleet prepares it (``policy.devices.prepare_for_serving``: on
+its device, eval mode, the frozen TorchScript trace, optimized for inference on the CPU), and for each
+fleet size B the same B states are timed with
 
 - DDIM action sampling (``predict_action_chunk``), the policy's share of a step;
 - the paper's denoising metric as the fleet scores it (``DenoisingSignal.score``: probe, mixture

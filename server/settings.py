@@ -133,7 +133,9 @@ class Settings(BaseSettings):
         "command, is not stepped at all (its scene waits too), so results do not depend on operator latency",
     )
     torch_threads: int = Field(1, ge=1, le=256, description="server-side torch threads; workers take the other cores")
-    trace_policies: bool = Field(True, description="serve each policy's noise network as a frozen TorchScript trace")
+    trace_policies: bool = Field(
+        True, description="serve each policy's noise network as a frozen TorchScript trace (inference-optimized on CPU)"
+    )
     device: str = Field(
         "cpu",
         pattern=r"^(cpu|cuda(:\d+)?)$",
