@@ -2,7 +2,7 @@
 
 import os
 
-from server.bench import fleet_throughput
+from server.bench import fleet_goals, fleet_throughput
 
 
 def test_a_pooled_fleet_steps_every_robot_and_reports_its_memory(tmp_path):
@@ -17,3 +17,15 @@ def test_a_pooled_fleet_steps_every_robot_and_reports_its_memory(tmp_path):
     cores = os.cpu_count() or 1
     used = (out["workers_cpu_ms_per_env_step"] + out["loop_cpu_ms_per_env_step"]) * out["env_steps_per_s"] / 1e3
     assert used <= cores * 1.05
+
+
+def test_the_goals_say_per_back_end_whether_this_run_met_them():
+    rows = [
+        {"robots": 8, "worker": "process", "share_of_raw": 0.9},  # not the goal's size: not judged
+        {"robots": 16, "worker": "process", "share_of_raw": 0.49},
+        {"robots": 16, "worker": "pool", "share_of_raw": 0.7},
+    ]
+    goals = fleet_goals(rows, {"process": 5.2, "pool": 0.4})
+    assert goals["share_of_raw_at_16"] == 0.7 and goals["share_of_raw_at_16_met"] == {"process": False, "pool": True}
+    assert goals["server_mb_per_added_robot_met"] == {"process": False, "pool": True}
+    assert fleet_goals(rows[:1], {})["share_of_raw_at_16_met"] == {}  # no fleet of 16: nothing claimed
