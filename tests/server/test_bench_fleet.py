@@ -2,6 +2,8 @@
 
 import os
 
+import numpy as np
+
 from server.bench import fleet_goals, fleet_throughput
 
 
@@ -12,6 +14,8 @@ def test_a_pooled_fleet_steps_every_robot_and_reports_its_memory(tmp_path):
     assert out["commands_applied"] > 0  # robot 0 is teleoperated through the fleet's mailbox
     assert out["server_rss_mb"] > out["server_rss_before_fleet_mb"] > 0
     assert out["worker_peak_rss_mb"] > 0 and out["workers_rss_mb_per_robot"] > 0
+    assert out["workers_peak_rss_mb_per_robot"] >= out["workers_rss_mb_per_robot"] * 0.99  # a peak is no lower
+    assert np.isclose(out["server_peak_rss_mb_per_robot"] * 3, out["server_peak_rss_mb"])
     assert out["workers_cpu_ms_per_env_step"] > 0
     # the physics processes' CPU only: together with the loop's, no more than the machine's cores give
     cores = os.cpu_count() or 1
