@@ -198,8 +198,10 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         given["sources"] = tuple(args.sources)
     if args.counts:
         given["counts"] = tuple(args.counts)
-    if args.ratio is not None:
-        given["finetune"] = FinetuneConfig(ratio=args.ratio)
+    if args.ratio is not None or args.keep_obs_range:
+        given["finetune"] = FinetuneConfig(
+            ratio=0.5 if args.ratio is None else args.ratio, widen_obs_range=not args.keep_obs_range
+        )
     if args.return_after is not None:
         given["return_after"] = args.return_after
     if args.hand_back is not None:
@@ -234,6 +236,11 @@ def register_finetune(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--counts", nargs="+", type=int, default=None, help="sample counts K (default 20 50 100 200)")
     q.add_argument("--episodes", type=int, default=None, help="evaluation episodes per task (default 20)")
     q.add_argument("--ratio", type=float, default=None, help="takeover share of each mini-batch (default 0.5)")
+    q.add_argument(
+        "--keep-obs-range",
+        action="store_true",
+        help="fine-tune with the parent's observation range (default: widened to cover the takeover data)",
+    )
     q.add_argument(
         "--return-after", type=int, default=None, help="the operator hands back after N calm steps (default 1)"
     )

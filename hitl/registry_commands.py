@@ -116,6 +116,7 @@ def _finetune_config(args: argparse.Namespace, settings):
 
     ft = settings.finetune
     given = {"eval_episodes": ft.eval_episodes, "tolerance": ft.tolerance, "min_gain": ft.min_gain}
+    given["widen_obs_range"] = ft.widen_obs_range and not args.keep_obs_range
     given |= {
         k: getattr(args, k)
         for k in ("ratio", "steps", "batch_size", "lr", "seed", "eval_seed", "tolerance", "min_gain", "eval_episodes")
@@ -233,6 +234,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--eval-episodes", type=int, default=None, help="per task (default: settings, 20)")
     p.add_argument("--eval-seed", type=int, default=None)
     p.add_argument("--ratio", type=float, default=None, help="takeover share of each mini-batch (default 0.5)")
+    p.add_argument(
+        "--keep-obs-range",
+        action="store_true",
+        help="keep the parent's observation range (default: widen it to cover the takeover data)",
+    )
     p.add_argument("--steps", type=int, default=None, help="fixed step count (default: scales with the data)")
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None)

@@ -2,9 +2,13 @@
 the promotion gate. No database here: ``server.finetune_job`` runs these steps as a job and records
 them in the registry.
 
-Training starts from the parent's weights and keeps the parent's normalizers (its absolute action
-space), mixes every mini-batch ``ratio`` takeover / ``1 - ratio`` pretraining (``policy.mixing``)
-and runs a number of steps that grows with the takeover data (``FinetuneConfig.steps_for``).
+Training starts from the parent's weights and its action normalizer (its absolute action space).
+The observation normalizer keeps the parent's range and is widened to cover the takeover
+observations (``widen_obs_range``): a state on an object the parent never saw (a hammer's extent
+after a cube's) would otherwise reach the network several ranges outside anything it was trained
+on, and small takeover sets taught it nothing (docs/benchmarks.md, "finetune-widened"). Every
+mini-batch mixes ``ratio`` takeover / ``1 - ratio`` pretraining (``policy.mixing``), and the number
+of steps grows with the takeover data (``FinetuneConfig.steps_for``).
 Evaluation rolls the policy out autonomously through the one ``Controller`` (``rollout_policy``) on
 seeded episodes of the lineage's tasks.
 """
@@ -31,7 +35,8 @@ class FinetuneConfig:
     """ratio: takeover share of each mini-batch; steps: ``passes`` expected visits of each takeover
     sample (``passes * N / (ratio * batch_size)``) clipped to [min_steps, max_steps], or ``steps`` when
     given; tolerance: how much training-task success may drop; min_gain: how much the target tasks'
-    mean success must rise (strictly more than this)."""
+    mean success must rise (strictly more than this); widen_obs_range: widen the child's observation
+    normalizer to cover the takeover observations (False: keep the parent's, as before)."""
 
     ratio: float = 0.5
     batch_size: int = 64
@@ -48,6 +53,7 @@ class FinetuneConfig:
     eval_seed: int = 50_000
     tolerance: float = 0.05
     min_gain: float = 0.0
+    widen_obs_range: bool = True
 
     def __post_init__(self) -> None:
         if not 0 < self.ratio <= 1:
@@ -143,6 +149,7 @@ def finetune_policy(
     data = {k: np.concatenate([takeover[k], pretrain[k][: n_pre or 0]]) for k in (keys.OBS, keys.ACTION)}
     sampler = MixedSampler(n_take, n_pre, cfg.ratio)
     policy = copy.deepcopy(parent)
+    widened = policy.obs_normalizer.widen(takeover[keys.OBS]) if cfg.widen_obs_range else 0
     tcfg = cfg.train_config(n_take)
     resume = TrainState.load(work_dir) if work_dir is not None and TrainState.exists(work_dir) else None
 
@@ -168,6 +175,7 @@ def finetune_policy(
         "takeover_samples": n_take,
         "pretraining_samples": n_pre,
         "ratio": cfg.ratio,
+        "obs_dims_widened": widened,
         "resumed_from_step": resume.step if resume is not None else None,
     }
     return ema, history

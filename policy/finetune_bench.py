@@ -249,7 +249,12 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
                 return {"error": str(exc)}
             arrays = data.arrays(parent.config.obs_horizon, parent.config.action_horizon)
             child, history = finetune_policy(parent, arrays, pre_train, cfg.finetune, progress=False)
-            return {"steps": history["steps"], "seconds": round(history["seconds"], 1), "success": success(child)}
+            return {
+                "steps": history["steps"],
+                "obs_dims_widened": history["obs_dims_widened"],
+                "seconds": round(history["seconds"], 1),
+                "success": success(child),
+            }
 
         result = cached(key, compute)
         points.append({"source": source, "samples": k, **result})

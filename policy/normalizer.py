@@ -35,6 +35,24 @@ class MinMaxNormalizer(nn.Module):
         self.span.copy_(torch.where(narrow, torch.full_like(span, MIN_SPAN), span))
         return self
 
+    def widen(self, data: np.ndarray | torch.Tensor) -> int:
+        """Extends the range to cover ``data`` (N, dim) or (N, ..., dim) too, and keeps it where it
+        already does: a dimension inside the range normalizes exactly as before. Returns how many
+        dimensions were widened."""
+        x = torch.as_tensor(np.asarray(data), dtype=torch.float32).reshape(-1, self.low.numel())
+        if len(x) == 0:
+            return 0
+        if not torch.isfinite(x).all():
+            raise ValueError("cannot widen a normalizer to data with NaN or inf")
+        high = self.low + self.span
+        below, above = x.min(0).values < self.low, x.max(0).values > high
+        grow = below | above
+        low = torch.where(below, x.min(0).values, self.low)
+        # only the widened dimensions get a new span: the others keep theirs bit for bit
+        self.span.copy_(torch.where(grow, torch.maximum(high, x.max(0).values) - low, self.span))
+        self.low.copy_(low)
+        return int(grow.sum())
+
     def set_bounds(self, low: np.ndarray, high: np.ndarray) -> MinMaxNormalizer:
         """Fixed bounds: low, high (dim,), high > low everywhere."""
         lo = torch.as_tensor(np.asarray(low, dtype=np.float64), dtype=torch.float32).reshape(-1)

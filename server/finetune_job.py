@@ -372,7 +372,14 @@ class FinetuneRunner:
                 "manifest": manifest,
                 "history": {
                     k: history[k]
-                    for k in ("steps", "takeover_samples", "pretraining_samples", "seconds", "resumed_from_step")
+                    for k in (
+                        "steps",
+                        "takeover_samples",
+                        "pretraining_samples",
+                        "obs_dims_widened",
+                        "seconds",
+                        "resumed_from_step",
+                    )
                 },
                 "final_train_loss": history["train_loss"][-1] if history["train_loss"] else None,
             },

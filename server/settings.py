@@ -59,6 +59,9 @@ class FinetuneSettings(BaseModel):
     eval_episodes: int = Field(20, ge=1, le=1000, description="seeded autonomous episodes per evaluation task")
     tolerance: float = Field(0.05, ge=0, lt=1, description="the gate: allowed success drop on the training task")
     min_gain: float = Field(0.0, ge=0, lt=1, description="the gate: required success rise on the target tasks")
+    widen_obs_range: bool = Field(
+        True, description="widen the new version's observation range to cover its takeover data (false: the parent's)"
+    )
     eval_tasks: dict[str, list[str]] = Field(
         default_factory=dict,
         description="lineage -> the target tasks the gate compares on (default: the tasks its takeovers came from)",

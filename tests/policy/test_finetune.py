@@ -1,5 +1,7 @@
 """Fine-tuning's parts: the promotion gate, the step count, resumable training, the segment reader."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -84,12 +86,24 @@ def test_training_resumed_from_a_checkpoint_equals_an_uninterrupted_run(tmp_path
     assert history["step"][0] == 0  # the history before the checkpoint is kept
 
 
-def test_finetuning_starts_from_the_parent_and_keeps_its_normalizers(tmp_path):
+def test_finetuning_starts_from_the_parent_and_keeps_its_action_space(tmp_path):
     parent = tiny_policy()
     cfg = FinetuneConfig(steps=6, batch_size=8, checkpoint_every=3, warmup_steps=1)
-    child, history = finetune_policy(parent, _data(10, 1), _data(30, 2), cfg, tmp_path / "work", progress=False)
+    takeover = _data(10, 1)
+    takeover[keys.OBS][:, 0, 3] = 40.0  # one dimension far outside the parent's observation range
+    child, history = finetune_policy(parent, takeover, _data(30, 2), cfg, tmp_path / "work", progress=False)
     assert history["takeover_samples"] == 10 and history["pretraining_samples"] == 30
     assert child.action_normalizer.stats() == parent.action_normalizer.stats()
+    # the observation range: widened to the takeover data where it lies outside, the parent's elsewhere
+    assert history["obs_dims_widened"] >= 1
+    assert child.obs_normalizer.stats()["max"][3] == pytest.approx(40.0)
+    low, high = np.array(parent.obs_normalizer.stats()["min"]), np.array(parent.obs_normalizer.stats()["max"])
+    inside = np.all((takeover[keys.OBS][:, 0] >= low) & (takeover[keys.OBS][:, 0] <= high), axis=0)
+    for d in np.flatnonzero(inside):
+        assert child.obs_normalizer.stats()["min"][d] == parent.obs_normalizer.stats()["min"][d]
+        assert child.obs_normalizer.stats()["max"][d] == parent.obs_normalizer.stats()["max"][d]
+    kept, history = finetune_policy(parent, takeover, _data(30, 2), replace(cfg, widen_obs_range=False), progress=False)
+    assert kept.obs_normalizer.stats() == parent.obs_normalizer.stats() and history["obs_dims_widened"] == 0
     assert not state_equal(child, parent)
     assert TrainState.load(tmp_path / "work").step == 6
     with pytest.raises(FinetuneDataError, match="no takeover samples"):

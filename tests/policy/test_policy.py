@@ -337,3 +337,17 @@ def test_a_policy_answers_on_the_device_of_its_input():
         chunk = policy.predict_action_chunk(obs, noise=torch.zeros((2, 1, 10)))
         eps = policy.noise_prediction(obs, torch.zeros((2, 4, 1, 10)), 0)
     assert policy.device.type == "cpu" and chunk.device == obs.device and eps.device == obs.device
+
+
+def test_widening_a_normalizer_covers_new_data_and_keeps_the_rest_exact():
+    from policy.normalizer import MinMaxNormalizer
+
+    norm = MinMaxNormalizer(3).fit(np.array([[0.0, 0.0, 5.0], [1.0, 2.0, 5.0]]))
+    before = norm.normalize(torch.tensor([0.5, 1.0, 5.0]))
+    assert norm.widen(np.array([[0.5, -2.0, 5.0], [0.2, 1.0, 5.0]])) == 1  # only dim 1 leaves the range
+    assert norm.stats() == {"min": [0.0, -2.0, pytest.approx(4.9995)], "max": [1.0, 2.0, pytest.approx(5.0005)]}
+    after = norm.normalize(torch.tensor([0.5, 1.0, 5.0]))
+    assert after[0] == before[0] and after[2] == before[2] and after[1] == 0.75  # dim 1: (1 - -2) / 4
+    assert norm.widen(np.zeros((0, 3))) == 0
+    with pytest.raises(ValueError, match="NaN or inf"):
+        norm.widen(np.array([[np.nan, 0.0, 0.0]]))
