@@ -198,10 +198,11 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         given["sources"] = tuple(args.sources)
     if args.counts:
         given["counts"] = tuple(args.counts)
-    if args.ratio is not None or args.keep_obs_range:
-        given["finetune"] = FinetuneConfig(
-            ratio=0.5 if args.ratio is None else args.ratio, widen_obs_range=not args.keep_obs_range
-        )
+    finetune = {"ratio": args.ratio} if args.ratio is not None else {}
+    if args.keep_obs_range:
+        finetune["widen_obs_range"] = False
+    if finetune:
+        given["finetune"] = FinetuneConfig(**finetune)
     if args.return_after is not None:
         given["return_after"] = args.return_after
     if args.hand_back is not None:
