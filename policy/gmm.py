@@ -58,6 +58,12 @@ def num_parameters(n: int, d: int) -> int:
     return n * (d + d * (d + 1) // 2) + n - 1
 
 
+def _bic(ll: torch.Tensor, d: int, s: int) -> torch.Tensor:
+    """ll: (B, N) total log-likelihood of the n = 1..N fits on s samples of dimension d -> (B, N) BIC."""
+    p = torch.tensor([num_parameters(n, d) for n in range(1, ll.shape[1] + 1)], dtype=ll.dtype, device=ll.device)
+    return -2 * ll + p * math.log(s)
+
+
 def _select(ll: torch.Tensor, bic: torch.Tensor, criterion: str) -> torch.Tensor:
     """(B,) index of the selected n (0-based)."""
     if criterion == "bic":
@@ -214,8 +220,7 @@ def fit_torch(
     else:
         resp, norm = _e_step(x, xx, weights, means, cov, mask, f)
     ll = norm.sum(-1)  # (B, F)
-    p = torch.tensor([num_parameters(n, d) for n in range(1, f + 1)], dtype=x.dtype, device=x.device)
-    bic = -2 * ll + p * math.log(s)
+    bic = _bic(ll, d, s)
     pick = _select(ll, bic, criterion)
     rows = torch.arange(b, device=x.device)
     slots = pick[:, None] * f + torch.arange(f, device=x.device)  # the selected fit's K slots
@@ -246,8 +251,7 @@ def fit_numba(
     b, s, d = x.shape
     fits = fit_all(x.detach().cpu().numpy(), max_modes, seed, reg_covar, max_iter, tol)
     ll = torch.from_numpy(fits["log_likelihood"])
-    p = torch.tensor([num_parameters(n, d) for n in range(1, max_modes + 1)], dtype=torch.float64)
-    bic = -2 * ll + p * math.log(s)
+    bic = _bic(ll, d, s)
     pick = _select(ll, bic, criterion)
     rows = torch.arange(b)
     return MixtureFit(
