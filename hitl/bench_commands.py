@@ -233,7 +233,12 @@ def register_finetune(bench: argparse._SubParsersAction) -> None:
     )
     q.add_argument("--quick", action="store_true", help="takeover:spread and full-trajectory, K = 50, 100, 10 episodes")
     q.add_argument("--policy", default=None, help="default: policies/lift-cube (runs/lift-cube has every signal)")
-    q.add_argument("--sources", nargs="+", default=None, help="takeover:SIGNAL ... and/or full-trajectory")
+    q.add_argument(
+        "--sources",
+        nargs="+",
+        default=None,
+        help="takeover:SIGNAL ..., full-trajectory and/or expert:grasp (the demonstrations' steps around the grasp)",
+    )
     q.add_argument("--counts", nargs="+", type=int, default=None, help="sample counts K (default 20 50 100 200)")
     q.add_argument("--episodes", type=int, default=None, help="evaluation episodes per task (default 20)")
     q.add_argument("--ratio", type=float, default=None, help="takeover share of each mini-batch (default 0.5)")

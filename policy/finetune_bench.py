@@ -6,6 +6,9 @@ From one pretrained lift policy: collect fine-tuning data on the unseen objects 
   assisted rollouts where ``<signal>`` asks for help, with the demo fleet's hand-back rules
   (continuous, cooldown 10), whole takeovers drawn in a seeded random order;
 - ``full-trajectory``: whole scripted-expert demonstrations, one after the other;
+- ``expert:grasp``: the same demonstrations cut to the steps around the grasp (``GRASP_WINDOW``): the
+  data of a signal that asks exactly at the grasp and an operator who hands back once the object is
+  held. No signal collects it; it tells what perfect timing would be worth;
 
 then, for each source and each sample count K, fine-tune a copy of the policy on the first K samples
 (spread evenly over the unseen tasks) with the job's recipe (``policy.finetune``: 50/50 batches with
@@ -32,6 +35,8 @@ from storage import keys
 from storage.takeovers import TakeoverSet
 
 FULL = "full-trajectory"
+GRASP = "expert:grasp"
+GRASP_WINDOW = (20, 13)  # expert:grasp keeps this many steps before the gripper first closes, and from it on
 UNSEEN = ("lift-nut", "lift-hammer", "lift-hook")
 
 
@@ -128,6 +133,17 @@ class Samples:
         return TakeoverSet(obs_a, act_a, np.zeros((len(obs_a), 7), np.float32), np.array(ends, np.int64))
 
 
+def grasp_window(obs: np.ndarray, act: np.ndarray, window: tuple[int, int] = GRASP_WINDOW):
+    """The steps of one demonstration from ``window[0]`` before the first action that closes the gripper
+    to ``window[1]`` from it on; the whole demonstration when it never closes."""
+    closing = np.flatnonzero(act[:, -1] > 0)
+    if not len(closing):
+        return obs, act
+    at = int(closing[0])
+    cut = slice(max(0, at - window[0]), at + window[1])
+    return obs[cut], act[cut]
+
+
 def _runs_from_episodes(episodes, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """The operator's takeovers (runs of consecutive operator steps) in a seeded random order: the first
     K samples are then a draw of whole takeovers from all the episodes, wherever in them the signal asked
@@ -160,13 +176,15 @@ def collect(
         got, runs[task] = 0, []
         for r in range(cfg.collect_rounds):
             seeds = list(range(cfg.collect_seed + 1000 * ti + 16 * r, cfg.collect_seed + 1000 * ti + 16 * (r + 1)))
-            if source == FULL:
+            if source in (FULL, GRASP):
                 folder = cache / "demos" / task / f"seed{seeds[0]}"
                 if not any(folder.glob("*.mcap")):
                     record_demos(task, len(seeds), folder, seed=seeds[0], progress=progress)
                 ds = load_dataset(folder, DatasetConfig(val_fraction=0.0))
                 new = [(ds.obs[s:e], ds.actions[s:e]) for s, e in zip(ds.episode_starts, ds.episode_ends, strict=True)]
-            else:
+                if source == GRASP:
+                    new = [grasp_window(o, a) for o, a in new]
+            elif source.startswith("takeover:"):
                 signal = load_signal(policy, policy_dir, source.split(":", 1)[1])
                 assist = AssistConfig(
                     mode=cfg.hand_back,
@@ -178,6 +196,8 @@ def collect(
                 )
                 episodes, _ = run_assisted(policy, task, seeds, signal, config=assist, progress=progress)
                 new = _runs_from_episodes(episodes, seeds[0])
+            else:
+                raise ValueError(f"unknown source {source!r}: takeover:SIGNAL, {FULL} or {GRASP}")
             runs[task] += new
             got += sum(len(o) for o, _ in new)
             if got >= need:
@@ -223,6 +243,7 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
         if source not in samples:
             what = [cfg.policy, cfg.unseen, cfg.collect_seed, cfg.collect_rounds, cfg.hand_back, cfg.budget]
             what += [cfg.cooldown, source, need] + ([cfg.return_after] if cfg.return_after != 1 else [])
+            what += [GRASP_WINDOW] if source == GRASP else []
             digest = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
             stored = cache / f"samples-{source.replace(':', '_')}-{digest}.npz"
             try:

@@ -1,0 +1,73 @@
+"""``hitl bench finetune``'s data handling and verdict (the rollouts themselves run in the benchmark)."""
+
+import numpy as np
+import pytest
+
+from policy.finetune_bench import FULL, GRASP_WINDOW, Samples, grasp_window
+from policy.finetune_report import summarize
+
+
+def _run(start: int, n: int, close_at: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """n steps whose observation is its step number (start, start + 1, ...); the gripper closes from close_at."""
+    obs = np.arange(start, start + n, dtype=np.float32)[:, None].repeat(3, 1)
+    act = np.zeros((n, 10), np.float32)
+    act[:, -1] = -1.0
+    if close_at is not None:
+        act[close_at:, -1] = 1.0
+    return obs, act
+
+
+def test_the_first_k_samples_are_whole_runs_in_order_spread_over_the_tasks(tmp_path):
+    samples = Samples({"a": [_run(0, 4), _run(100, 5)], "b": [_run(200, 3), _run(300, 9)]})
+    path = tmp_path / "s.npz"
+    samples.save(path)
+    samples = Samples.load(path)
+    assert samples.count() == {"a": 9, "b": 12}
+
+    got = samples.first(13)  # 7 from a (the first one: 13 % 2), 6 from b
+    assert got.obs[:, 0].tolist() == [0, 1, 2, 3, 100, 101, 102, 200, 201, 202, 300, 301, 302]
+    assert got.episode_ends.tolist() == [4, 7, 10, 13]  # the last run of each task is cut, never joined
+    with pytest.raises(ValueError, match="only 9 samples of a collected, 10 wanted"):
+        samples.first(20)
+
+
+def test_the_grasp_window_keeps_the_steps_around_the_first_close():
+    before, after = GRASP_WINDOW
+    obs, act = _run(0, 80, close_at=50)
+    o, a = grasp_window(obs, act)
+    assert o[:, 0].tolist() == list(range(50 - before, 50 + after))
+    assert (a[:, -1] > 0).sum() == after
+
+    o, _ = grasp_window(*_run(0, 40, close_at=5))  # clipped at the start
+    assert o[:, 0].tolist() == list(range(0, 5 + after))
+    o, _ = grasp_window(*_run(0, 12))  # never closes: kept whole
+    assert len(o) == 12
+
+
+def _point(source, k, unseen_successes):
+    success = {"cube": {"success_rate": 1.0}} | {
+        t: {"success_rate": s / 10} for t, s in zip(("x", "y"), unseen_successes, strict=True)
+    }
+    return {"source": source, "samples": k, "steps": 500, "success": success}
+
+
+def test_the_verdict_takes_the_default_signals_best_count_up_to_100():
+    result = {
+        "config": {"train_task": "cube", "unseen": ["x", "y"], "sources": ["takeover:spread", FULL]},
+        "pretrained": {"cube": {"success_rate": 1.0}, "x": {"success_rate": 0.0}, "y": {"success_rate": 0.1}},
+        "points": [
+            _point("takeover:spread", 50, (5, 6)),  # 0.55: the best at <= 100
+            _point("takeover:spread", 100, (4, 4)),
+            _point("takeover:spread", 200, (10, 10)),  # beyond the goal's count
+            _point(FULL, 50, (5, 5)),
+            _point(FULL, 100, (9, 9)),
+        ],
+    }
+    v = summarize(result)["verdict"]
+    assert v["samples"] == 50
+    assert v["unseen_lift"] == pytest.approx(0.5)
+    assert v["lift_goal_met"] and v["beats_full_trajectory"]
+
+    result["points"][3] = _point(FULL, 50, (6, 6))  # full trajectories better at the same count
+    v = summarize(result)["verdict"]
+    assert v["full_trajectory_at_same_count"] == pytest.approx(0.6) and not v["beats_full_trajectory"]
