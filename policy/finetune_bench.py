@@ -60,6 +60,19 @@ class FinetuneBenchConfig:
     return_after: int = 1  # continuous: the operator hands back after this many steps the signal is calm
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
 
+    def __post_init__(self) -> None:
+        from policy.signals.registry import SIGNALS
+
+        for source in self.sources:
+            kind, _, signal = source.partition(":")
+            if source not in (FULL, GRASP) and not (kind == "takeover" and signal in SIGNALS):
+                raise ValueError(
+                    f"unknown source {source!r}: {FULL}, {GRASP} or takeover:SIGNAL with SIGNAL one of "
+                    + ", ".join(SIGNALS)
+                )
+        if not self.counts or any(not (isinstance(k, int) and k >= 1) for k in self.counts):
+            raise ValueError(f"counts must be integers >= 1, got {self.counts!r}")
+
     @classmethod
     def quick(cls, **kw) -> FinetuneBenchConfig:
         base = {"sources": ("takeover:spread", FULL), "counts": (50, 100), "eval_episodes": 10}
@@ -196,8 +209,8 @@ def collect(
                 )
                 episodes, _ = run_assisted(policy, task, seeds, signal, config=assist, progress=progress)
                 new = _runs_from_episodes(episodes, seeds[0])
-            else:
-                raise ValueError(f"unknown source {source!r}: takeover:SIGNAL, {FULL} or {GRASP}")
+            else:  # FinetuneBenchConfig refuses any other
+                raise ValueError(f"unknown source {source!r}")
             runs[task] += new
             got += sum(len(o) for o, _ in new)
             if got >= need:

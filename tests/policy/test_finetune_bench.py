@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from policy.finetune_bench import FULL, GRASP_WINDOW, Samples, grasp_window
+from policy.finetune_bench import FULL, GRASP, GRASP_WINDOW, FinetuneBenchConfig, Samples, grasp_window
 from policy.finetune_report import summarize
 
 
@@ -71,3 +71,20 @@ def test_the_verdict_takes_the_default_signals_best_count_up_to_100():
     result["points"][3] = _point(FULL, 50, (6, 6))  # full trajectories better at the same count
     v = summarize(result)["verdict"]
     assert v["full_trajectory_at_same_count"] == pytest.approx(0.6) and not v["beats_full_trajectory"]
+
+
+def test_the_config_refuses_unknown_sources_and_bad_counts_before_anything_runs():
+    assert FinetuneBenchConfig(sources=(GRASP, FULL, "takeover:spread")).sources[0] == GRASP
+    for bad in ("expert:lift", "takeover:nope", "spread"):
+        with pytest.raises(ValueError, match=f"unknown source '{bad}'"):
+            FinetuneBenchConfig(sources=(bad,))
+    for counts in ((), (0,), (20, 2.5)):
+        with pytest.raises(ValueError, match="counts must be integers >= 1"):
+            FinetuneBenchConfig(counts=counts)
+
+
+def test_the_cli_names_a_bad_source(capsys):
+    from hitl.cli import main
+
+    assert main(["bench", "finetune", "--sources", "takeover:nope"]) == 2
+    assert "unknown source 'takeover:nope'" in capsys.readouterr().err
