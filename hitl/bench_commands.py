@@ -192,7 +192,6 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
     from policy.finetune_report import markdown, plot, summarize
     from policy.hitl_docs import replace_section
 
-    torch.set_num_threads(args.threads)
     given = {k: v for k, v in (("policy", args.policy), ("eval_episodes", args.episodes)) if v is not None}
     if args.sources:
         given["sources"] = tuple(args.sources)
@@ -207,7 +206,8 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         given["return_after"] = args.return_after
     if args.hand_back is not None:
         given["hand_back"] = args.hand_back
-    cfg = FinetuneBenchConfig.quick(**given) if args.quick else FinetuneBenchConfig(**given)
+    cfg = FinetuneBenchConfig.quick(**given) if args.quick else FinetuneBenchConfig(**given)  # validated first
+    torch.set_num_threads(args.threads)
     result = run_bench(cfg, args.cache, progress=not args.quiet)
     summary = summarize(result)
     command = "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:])

@@ -84,7 +84,11 @@ def test_the_config_refuses_unknown_sources_and_bad_counts_before_anything_runs(
 
 
 def test_the_cli_names_a_bad_source(capsys):
+    import torch
+
     from hitl.cli import main
 
-    assert main(["bench", "finetune", "--sources", "takeover:nope"]) == 2
+    threads = torch.get_num_threads()
+    assert main(["bench", "finetune", "--sources", "takeover:nope", "--threads", str(threads + 1)]) == 2
     assert "unknown source 'takeover:nope'" in capsys.readouterr().err
+    assert torch.get_num_threads() == threads  # refused before it set anything up
