@@ -199,19 +199,29 @@ class TaskResult:
     def from_dict(cls, d: dict) -> TaskResult:
         return cls(str(d["task"]), int(d["episodes"]), int(d["successes"]), int(d["seed"]))
 
+    @classmethod
+    def from_episodes(cls, task: str, episodes: list, seed: int) -> TaskResult:
+        """From the rolled-out episodes (anything with ``success``) of seeds ``seed ..``."""
+        return cls(task, len(episodes), sum(bool(e.success) for e in episodes), seed)
+
+
+def evaluate_episodes(
+    policy: DiffusionPolicy, tasks: list[str], episodes: int, seed: int, progress: bool = True
+) -> dict[str, list]:
+    """Per task, the autonomous episodes (``PolicyEpisode``) on seeds ``seed .. seed + episodes - 1``,
+    through the controller."""
+    from policy.evaluate import rollout_policy
+
+    seeds = list(range(seed, seed + episodes))
+    return {t: rollout_policy(policy, t, seeds, n_envs=min(4, episodes), progress=progress)[0] for t in tasks}
+
 
 def evaluate(
     policy: DiffusionPolicy, tasks: list[str], episodes: int, seed: int, progress: bool = True
 ) -> dict[str, TaskResult]:
     """Autonomous success per task on seeds ``seed .. seed + episodes - 1``, through the controller."""
-    from policy.evaluate import rollout_policy
-
-    out = {}
-    seeds = list(range(seed, seed + episodes))
-    for task in tasks:
-        eps, _ = rollout_policy(policy, task, seeds, n_envs=min(4, episodes), progress=progress)
-        out[task] = TaskResult(task, episodes, sum(bool(e.success) for e in eps), seed)
-    return out
+    runs = evaluate_episodes(policy, tasks, episodes, seed, progress)
+    return {t: TaskResult.from_episodes(t, eps, seed) for t, eps in runs.items()}
 
 
 @dataclass(frozen=True)

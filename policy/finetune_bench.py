@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from policy.assisted import AssistConfig, run_assisted
 from policy.checkpoint import load_policy, read_info
-from policy.finetune import FinetuneConfig, evaluate, finetune_policy, pretraining_split
+from policy.finetune import FinetuneConfig, TaskResult, evaluate_episodes, finetune_policy, pretraining_split
 from storage import keys
 from storage.takeovers import TakeoverSet
 
@@ -157,6 +157,26 @@ def grasp_window(obs: np.ndarray, act: np.ndarray, window: tuple[int, int] = GRA
     return obs[cut], act[cut]
 
 
+def first_close_summary(episodes) -> dict | None:
+    """Where the gripper was first told to close over ``episodes`` (the lift tasks' ``episode_info``):
+    how many closed, and the median distance in the plane from the grasp point and from the body origin
+    (m); None for a task that records neither."""
+    infos = [e.info for e in episodes if "first_close_to_grasp_m" in e.info]
+    if not infos:
+        return None
+    closed = [i for i in infos if i["first_close_to_grasp_m"] is not None]
+
+    def median(key: str) -> float | None:
+        return float(np.median([i[key] for i in closed])) if closed else None
+
+    return {
+        "episodes": len(infos),
+        "closed": len(closed),
+        "median_to_grasp_m": median("first_close_to_grasp_m"),
+        "median_to_origin_m": median("first_close_to_origin_m"),
+    }
+
+
 def _runs_from_episodes(episodes, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """The operator's takeovers (runs of consecutive operator steps) in a seeded random order: the first
     K samples are then a draw of whole takeovers from all the episodes, wherever in them the signal asked
@@ -239,8 +259,11 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
         return value
 
     def success(policy) -> dict:
-        res = evaluate(policy, tasks, cfg.eval_episodes, cfg.eval_seed, progress)
-        return {t: r.to_dict() for t, r in res.items()}
+        runs = evaluate_episodes(policy, tasks, cfg.eval_episodes, cfg.eval_seed, progress)
+        return {
+            t: TaskResult.from_episodes(t, eps, cfg.eval_seed).to_dict() | {"first_close": first_close_summary(eps)}
+            for t, eps in runs.items()
+        }
 
     base_key = "pretrained-" + cfg.digest("pretrained", tasks, cfg.eval_episodes, cfg.eval_seed)
     pretrained = cached(base_key, lambda: success(parent))

@@ -72,6 +72,39 @@ def plot(summary: dict, out: Path) -> Path:
     return out
 
 
+def _first_close_table(result: dict) -> list[str]:
+    """Where the evaluated policies first closed the gripper on the unseen objects (points evaluated
+    before this was recorded have nothing to show and are left out)."""
+    unseen = list(result["config"]["unseen"])
+    rows = [("pretrained", 0, result["pretrained"])] + [
+        (p["source"], p["samples"], p["success"]) for p in result["points"] if "success" in p
+    ]
+    rows = [r for r in rows if all((r[2][t].get("first_close") or {}).get("episodes") for t in unseen)]
+    if not rows:
+        return []
+
+    def cm(fc: dict, key: str) -> str:
+        return "-" if fc[key] is None else f"{100 * fc[key]:.1f}"
+
+    lines = [
+        f"Where the gripper first closes on the unseen objects (per task: {', '.join(unseen)}): the episodes "
+        "that close it, and the median distance in the plane from the object's grasp point and from its body "
+        "origin, where a cube is grasped.",
+        "",
+        "| source | samples | episodes that close | from the grasp point (cm) | from the body origin (cm) |",
+        "|---|---|---|---|---|",
+    ]
+    for source, k, success in rows:
+        fcs = [success[t]["first_close"] for t in unseen]
+        closed = " / ".join(f"{f['closed']}/{f['episodes']}" for f in fcs)
+        lines.append(
+            f"| {source} | {k} | {closed} "
+            f"| {' / '.join(cm(f, 'median_to_grasp_m') for f in fcs)} "
+            f"| {' / '.join(cm(f, 'median_to_origin_m') for f in fcs)} |"
+        )
+    return [*lines, ""]
+
+
 def markdown(result: dict, summary: dict, figure: Path | None, report: Path, command: str) -> str:
     cfg = result["config"]
     unseen = ", ".join(cfg["unseen"])
@@ -103,6 +136,7 @@ def markdown(result: dict, summary: dict, figure: Path | None, report: Path, com
         tr, un = summary["curves"][p["source"]][p["samples"]]
         lines.append(f"| {p['source']} | {p['samples']} | {tr:.2f} | {un:.2f} | {p['steps']} |")
     lines.append("")
+    lines += _first_close_table(result)
     lines += [
         "| source | takeovers (or episodes) per task | samples per task | gripper closed in |",
         "|---|---|---|---|",

@@ -126,6 +126,7 @@ class LiftTask(Task):
             self.problem = "training distribution"
         self._rest_z = 0.0
         self._max_lift = 0.0
+        self._first_close: tuple[int, float, float] | None = None
         sym = self.spec.body_symmetry
         self.symmetry_order = round(2 * np.pi / sym) if sym else 1
 
@@ -163,6 +164,7 @@ class LiftTask(Task):
         super()._settle(steps)
         self._rest_z = float(self.sim.data.body_xpos[self._body][2])
         self._max_lift = 0.0
+        self._first_close = None
         self._extent = self.body_extent(self._body)  # rigid: measured once per episode
 
     def perceived_extent(self) -> np.ndarray:
@@ -171,10 +173,24 @@ class LiftTask(Task):
 
     def on_step(self) -> None:
         self._max_lift = max(self._max_lift, float(self.sim.data.body_xpos[self._body][2]) - self._rest_z)
+        if self._first_close is None and self._gripper > 0:
+            eef, goal = self.ee_pose()[0], self.privileged()
+            in_plane = [float(np.linalg.norm((eef - goal[k])[:2])) for k in ("grasp_point", "object_pos")]
+            self._first_close = (self.t - 1, *in_plane)  # the 0-based index of the closing step
 
     def episode_info(self) -> dict:
-        """``max_lift``: the highest the object got above its resting height (m)."""
-        return {"max_lift": round(self._max_lift, 4)}
+        """``max_lift``: the highest the object got above its resting height (m). Where the gripper was
+        first told to close: ``first_close_step`` (0-based), and its distance in the plane from the object's grasp
+        point (``first_close_to_grasp_m``) and from its body origin (``first_close_to_origin_m``); None
+        when it never closed. A policy that grasps an unseen object where it would grasp a cube closes
+        near the origin, away from the grasp point."""
+        step, to_grasp, to_origin = self._first_close or (None, None, None)
+        return {
+            "max_lift": round(self._max_lift, 4),
+            "first_close_step": step,
+            "first_close_to_grasp_m": None if to_grasp is None else round(to_grasp, 4),
+            "first_close_to_origin_m": None if to_origin is None else round(to_origin, 4),
+        }
 
     @property
     def _body(self) -> int:

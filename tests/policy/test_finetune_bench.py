@@ -1,10 +1,20 @@
 """``hitl bench finetune``'s data handling and verdict (the rollouts themselves run in the benchmark)."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
-from policy.finetune_bench import FULL, GRASP, GRASP_WINDOW, FinetuneBenchConfig, Samples, grasp_window
-from policy.finetune_report import summarize
+from policy.finetune_bench import (
+    FULL,
+    GRASP,
+    GRASP_WINDOW,
+    FinetuneBenchConfig,
+    Samples,
+    first_close_summary,
+    grasp_window,
+)
+from policy.finetune_report import markdown, summarize
 
 
 def _run(start: int, n: int, close_at: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -92,3 +102,47 @@ def test_the_cli_names_a_bad_source(capsys):
     assert main(["bench", "finetune", "--sources", "takeover:nope", "--threads", str(threads + 1)]) == 2
     assert "unknown source 'takeover:nope'" in capsys.readouterr().err
     assert torch.get_num_threads() == threads  # refused before it set anything up
+
+
+def _ep(to_grasp, to_origin):
+    info = {"max_lift": 0.0, "first_close_step": None if to_grasp is None else 40}
+    return SimpleNamespace(
+        success=False, info=info | {"first_close_to_grasp_m": to_grasp, "first_close_to_origin_m": to_origin}
+    )
+
+
+def test_first_close_summary_counts_the_closes_and_takes_medians():
+    fc = first_close_summary([_ep(0.06, 0.01), _ep(None, None), _ep(0.02, 0.05), _ep(0.07, 0.03)])
+    assert fc == {"episodes": 4, "closed": 3, "median_to_grasp_m": 0.06, "median_to_origin_m": 0.03}
+    assert first_close_summary([_ep(None, None)])["median_to_grasp_m"] is None
+    assert first_close_summary([SimpleNamespace(success=True, info={})]) is None  # a task that records none
+
+
+def test_the_report_shows_where_the_gripper_closes_for_the_points_that_recorded_it(tmp_path):
+    def success(fc):
+        return {t: {"success_rate": 0.0, "first_close": fc} for t in ("cube", "x", "y")}
+
+    fc = {"episodes": 20, "closed": 15, "median_to_grasp_m": 0.065, "median_to_origin_m": 0.021}
+    result = {
+        "config": {
+            "train_task": "cube",
+            "unseen": ["x", "y"],
+            "sources": [FULL],
+            "eval_episodes": 20,
+            "eval_seed": 1,
+            "hand_back": "continuous",
+            "cooldown": 10,
+        },
+        "pretrained": success(None),  # evaluated before first closes were recorded
+        "points": [{"source": FULL, "samples": 100, "steps": 500, "success": success(fc)}],
+        "collected": {},
+        "skipped_sources": {},
+        "seconds": 1.0,
+        "read_from_cache": 0,
+        "computed_in_this_run": 2,
+        "policy": "p",
+        "trained_on": "cube",
+    }
+    text = markdown(result, summarize(result), None, tmp_path / "r.md", "hitl bench finetune")
+    assert f"| {FULL} | 100 | 15/20 / 15/20 | 6.5 / 6.5 | 2.1 / 2.1 |" in text
+    assert "| pretrained | 0 | " not in text.split("Where the gripper first closes")[1]

@@ -199,3 +199,21 @@ def test_experts_never_pause_in_free_space_above_the_object(task_cache, name):
         phases = expert.plan(task, np.random.default_rng(seed))
         approach = next(p for p in phases if p.name == "approach")
         assert approach.pause == 0
+
+
+def test_lift_records_where_the_gripper_first_closed(task_cache):
+    task = task_cache("lift-nut")
+    task.reset(seed=0)
+    assert task.episode_info()["first_close_step"] is None
+    closes = []
+    result = run_expert_episode(task, make_expert("lift-nut"), 0, on_step=lambda r: closes.append(r.action[9] > 0))
+    info = task.episode_info()
+    assert result.success and info["first_close_step"] == closes.index(True)
+    # the expert closes on the handle, 6 cm from the nut's body origin in its own frame
+    assert info["first_close_to_grasp_m"] < 0.01
+    assert info["first_close_to_origin_m"] == pytest.approx(0.06, abs=0.012)
+
+    task.reset(seed=0)  # a new episode forgets it; closing at once is step 0
+    assert task.episode_info()["first_close_to_grasp_m"] is None
+    task.step(task.teleop(TeleopCommand((0, 0, 0), (0, 0, 0), 1.0)).action)
+    assert task.episode_info()["first_close_step"] == 0
