@@ -180,10 +180,10 @@ class LiftTask(Task):
 
     def episode_info(self) -> dict:
         """``max_lift``: the highest the object got above its resting height (m). Where the gripper was
-        first told to close: ``first_close_step`` (0-based), and its distance in the plane from the object's grasp
-        point (``first_close_to_grasp_m``) and from its body origin (``first_close_to_origin_m``); None
-        when it never closed. A policy that grasps an unseen object where it would grasp a cube closes
-        near the origin, away from the grasp point."""
+        first told to close: ``first_close_step`` (0-based), and the end effector's distance in the plane
+        from the object's grasp point (``first_close_to_grasp_m``) and from its body origin
+        (``first_close_to_origin_m``); None when it never closed. A policy that grasps an unseen object
+        where it would grasp a cube closes near the origin, away from the grasp point."""
         step, to_grasp, to_origin = self._first_close or (None, None, None)
         return {
             "max_lift": round(self._max_lift, 4),
