@@ -44,12 +44,11 @@ class MinMaxNormalizer(nn.Module):
             return 0
         if not torch.isfinite(x).all():
             raise ValueError("cannot widen a normalizer to data with NaN or inf")
-        high = self.low + self.span
-        below, above = x.min(0).values < self.low, x.max(0).values > high
-        grow = below | above
-        low = torch.where(below, x.min(0).values, self.low)
+        x_min, x_max, high = x.min(0).values, x.max(0).values, self.low + self.span
+        grow = (x_min < self.low) | (x_max > high)
+        low = torch.minimum(self.low, x_min)
         # only the widened dimensions get a new span: the others keep theirs bit for bit
-        self.span.copy_(torch.where(grow, torch.maximum(high, x.max(0).values) - low, self.span))
+        self.span.copy_(torch.where(grow, torch.maximum(high, x_max) - low, self.span))
         self.low.copy_(low)
         return int(grow.sum())
 

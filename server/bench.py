@@ -180,7 +180,7 @@ def fleet_throughput(
         "server_rss_before_fleet_mb": rss_before,
         "server_rss_mb": server["rss_mb"],
         "server_peak_rss_mb": server["peak_rss_mb"],
-        # the server's peak shared by its robots (its growth per added robot: bench_fleet's slope)
+        # the server's peak shared by its robots (its growth per added robot is bench_fleet's slope)
         "server_peak_rss_mb_per_robot": server["peak_rss_mb"] / n if server["peak_rss_mb"] is not None else None,
         "worker_peak_rss_mb": max(peaks, default=None),
         "workers_rss_mb_per_robot": sum(rss) / n if rss else None,
