@@ -197,7 +197,7 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         given["sources"] = tuple(args.sources)
     if args.counts:
         given["counts"] = tuple(args.counts)
-    finetune = {"ratio": args.ratio} if args.ratio is not None else {}
+    finetune = {k: getattr(args, k) for k in ("ratio", "steps", "lr") if getattr(args, k) is not None}
     if args.keep_obs_range:
         finetune["widen_obs_range"] = False
     if finetune:
@@ -242,6 +242,8 @@ def register_finetune(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--counts", nargs="+", type=int, default=None, help="sample counts K (default 20 50 100 200)")
     q.add_argument("--episodes", type=int, default=None, help="evaluation episodes per task (default 20)")
     q.add_argument("--ratio", type=float, default=None, help="takeover share of each mini-batch (default 0.5)")
+    q.add_argument("--steps", type=int, default=None, help="fixed training steps (default: scales with the data)")
+    q.add_argument("--lr", type=float, default=None, help="learning rate (default: the job's, 5e-4)")
     q.add_argument(
         "--keep-obs-range",
         action="store_true",

@@ -72,6 +72,12 @@ def plot(summary: dict, out: Path) -> Path:
     return out
 
 
+def _mix(cfg: dict) -> str:
+    """The mini-batch mix, takeover/pretraining in percent (``50/50`` by default)."""
+    ratio = cfg.get("finetune", {}).get("ratio", 0.5)
+    return f"{round(100 * ratio)}/{round(100 * (1 - ratio))}"
+
+
 def _first_close_table(result: dict) -> list[str]:
     """Where the evaluated policies first closed the gripper on the unseen objects (points evaluated
     before this was recorded have nothing to show and are left out)."""
@@ -115,7 +121,7 @@ def markdown(result: dict, summary: dict, figure: Path | None, report: Path, com
         f"{result['read_from_cache'] + result['computed_in_this_run']} evaluations read from the cache of an "
         f"earlier run). Policy `{result['policy']}` (trained on "
         f"{result['trained_on']}); unseen objects: {unseen}. Each point fine-tunes the same pretrained weights "
-        f"on the first K samples of its source (K/{len(cfg['unseen'])} per unseen task) with 50/50 mini-batches "
+        f"on the first K samples of its source (K/{len(cfg['unseen'])} per unseen task) with {_mix(cfg)} mini-batches "
         f"against the pretraining set, then rolls out {cfg['eval_episodes']} seeded episodes per task "
         f"(seeds from {cfg['eval_seed']}) through the controller. Takeover data: the scripted expert as operator, "
         + (

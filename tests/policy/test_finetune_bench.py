@@ -145,4 +145,7 @@ def test_the_report_shows_where_the_gripper_closes_for_the_points_that_recorded_
     }
     text = markdown(result, summarize(result), None, tmp_path / "r.md", "hitl bench finetune")
     assert f"| {FULL} | 100 | 15/20 / 15/20 | 6.5 / 6.5 | 2.1 / 2.1 |" in text
+    assert "with 50/50 mini-batches" in text  # the default mix; a run's own ratio is named
+    result["config"]["finetune"] = {"ratio": 0.8}
+    assert "with 80/20 mini-batches" in markdown(result, summarize(result), None, tmp_path / "r.md", "x")
     assert "| pretrained | 0 | " not in text.split("Where the gripper first closes")[1]
