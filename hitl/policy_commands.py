@@ -15,11 +15,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from policy.checkpoint import save_policy
     from policy.config import DiffusionPolicyConfig
     from policy.diffusion_policy import DiffusionPolicy
+    from policy.frames import ObjectFrame
     from policy.train import TrainConfig, train_policy
     from sim.registry import make_task
     from storage.dataset import DatasetConfig, load_dataset
 
     task = make_task(args.task)  # validates the name; the simulator is not built
+    frame = ObjectFrame.from_obs_spec(task.obs_spec) if args.frame == "object" else None  # before any data
     ds = load_dataset(
         args.data, DatasetConfig(obs_horizon=args.obs_horizon, action_horizon=args.action_horizon, split_seed=args.seed)
     )
@@ -41,6 +43,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         obs_fourier_octaves=(4 if args.obs_encoder_dims else 0)
         if args.obs_fourier_octaves is None
         else args.obs_fourier_octaves,
+        object_frame=frame,
     )
     if args.symmetry_augment and task.symmetry_order < 2:
         raise ValueError(f"--symmetry-augment: task {args.task} has no scene symmetry to augment with")
@@ -449,6 +452,13 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
         "--symmetry-augment",
         action="store_true",
         help="train on observations turned into random identical poses of the scene (lift-cube: quarter turns)",
+    )
+    p.add_argument(
+        "--frame",
+        choices=["world", "object"],
+        default="world",
+        help="the frame the network sees observations and predicts actions in: the world, or the object's "
+        "position and heading on the table (tasks that observe object_pos and object_rot6d)",
     )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train, command_line=None)

@@ -35,7 +35,11 @@ def save_policy(policy: DiffusionPolicy, folder: str | Path, info: dict | None =
     doc = {
         "format": FORMAT,
         "policy": policy.config.to_dict(),
-        "normalization": {"obs": policy.obs_normalizer.stats(), "action": policy.action_normalizer.stats()},
+        "normalization": {
+            "obs": policy.obs_normalizer.stats(),
+            "action": policy.action_normalizer.stats(),
+            **({"frame_action": policy.frame_action_normalizer.stats()} if policy.frame is not None else {}),
+        },
         **(info or {}),
     }
     (folder / CONFIG).write_text(json.dumps(doc, indent=2) + "\n")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
+from policy.frames import ObjectFrame
+
 NETWORKS = ("unet", "mlp")
 ACTIVATIONS = ("silu", "mish")
 
@@ -36,6 +38,9 @@ class DiffusionPolicyConfig:
     num_train_steps: int = 100
     num_inference_steps: int = 10
     clip_margin: float = 0.25  # x̂_0 is clipped to [-margin, 1 + margin] in normalized space
+    # None: the world frame. Otherwise the network sees observations and predicts actions in the
+    # frame of the object's pose on the table (policy/frames.py); inputs and outputs stay world.
+    object_frame: ObjectFrame | None = None
 
     def __post_init__(self) -> None:
         def positive_int(name: str) -> None:
@@ -88,11 +93,24 @@ class DiffusionPolicyConfig:
             raise ValueError("obs_fourier_octaves needs an observation encoder (obs_encoder_dims)")
         if not 0 <= self.clip_margin <= 10:
             raise ValueError(f"clip_margin must be in [0, 10], got {self.clip_margin!r}")
+        if isinstance(self.object_frame, dict):
+            try:
+                object.__setattr__(self, "object_frame", ObjectFrame(**self.object_frame))
+            except TypeError as exc:
+                raise ValueError(f"object_frame: {exc}") from exc
+        if self.object_frame is not None:
+            if not isinstance(self.object_frame, ObjectFrame):
+                raise ValueError(f"object_frame must be an ObjectFrame, a dict or None, got {self.object_frame!r}")
+            self.object_frame.check(self.obs_dim)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["down_dims"] = list(self.down_dims)
         d["obs_encoder_dims"] = list(self.obs_encoder_dims)
+        if self.object_frame is None:
+            del d["object_frame"]  # world-frame configs read as before
+        else:
+            d["object_frame"] = self.object_frame.to_dict()
         return d
 
     @classmethod

@@ -3,6 +3,12 @@ and ``noise_prediction`` (the ε_θ the uncertainty metric and several baselines
 
 Raw observations and actions go in and come out; normalization to [0, 1] per
 dimension happens inside, with the statistics stored as buffers.
+
+With ``config.object_frame`` the network works in the object's frame (policy/frames.py): the
+observation and the actions are turned into it before normalization and the predicted actions
+turned back, so every caller still passes and receives world-frame values. ``action_normalizer``
+stays the world action space (the one the uncertainty probes and the recordings use);
+``frame_action_normalizer`` normalizes the actions the network sees.
 """
 
 from __future__ import annotations
@@ -72,6 +78,9 @@ class DiffusionPolicy(nn.Module):
         self.config = config
         self.obs_normalizer = MinMaxNormalizer(config.obs_dim)
         self.action_normalizer = MinMaxNormalizer(config.action_dim)
+        self.frame = config.object_frame
+        if self.frame is not None:
+            self.frame_action_normalizer = MinMaxNormalizer(config.action_dim)
         self.obs_encoder = ObsEncoder(
             config.obs_dim * config.obs_horizon, config.obs_encoder_dims, config.obs_fourier_octaves
         )
@@ -90,8 +99,23 @@ class DiffusionPolicy(nn.Module):
 
         action_bounds: (low, high) (action_dim,) fixed bounds for the action space (a task's
         ``ActionSpace.low`` / ``high``): the actions are normalized over them, not over the data, and
-        every training action must lie inside. Without them the data's own min/max is used."""
-        self.obs_normalizer.fit(obs)
+        every training action must lie inside. Without them the data's own min/max is used.
+
+        In the object frame the network's observations and actions are normalized over the
+        data's min/max in that frame (positions; the 6D rotation and the gripper over [-1, 1])."""
+        obs_t = torch.as_tensor(np.asarray(obs), dtype=torch.float32)
+        obs_t = obs_t.reshape(len(obs_t), -1, self.config.obs_dim)  # (N, H or 1, obs_dim)
+        self.obs_normalizer.fit(self._frame_obs(obs_t))
+        if self.frame is not None:  # actions (N, [C,] action_dim) pair with the N observations
+            act = torch.as_tensor(np.asarray(actions), dtype=torch.float32)
+            act = act.reshape(len(obs_t), -1, self.config.action_dim)
+            framed = self.frame.actions_to(act, obs_t).reshape(-1, self.config.action_dim)
+            low, high = framed.min(0).values.numpy(), framed.max(0).values.numpy()
+            low[3:], high[3:] = -1.0, 1.0
+            self.frame_action_normalizer.set_bounds(low, high)
+        self._fit_action_bounds(actions, action_bounds)
+
+    def _fit_action_bounds(self, actions: np.ndarray, action_bounds) -> None:
         if action_bounds is None:
             self.action_normalizer.fit(actions)
             return
@@ -108,6 +132,32 @@ class DiffusionPolicy(nn.Module):
     def normalize_action(self, action: torch.Tensor) -> torch.Tensor:
         return self.action_normalizer.normalize(action)
 
+    def _frame_obs(self, obs: torch.Tensor) -> torch.Tensor:
+        """(B, H, obs_dim) raw world -> what the network is fed before normalization."""
+        return obs if self.frame is None else self.frame.observation(obs)
+
+    def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
+        """(B, H, obs_dim) raw -> the normalized observation the network sees (in its frame)."""
+        return self.obs_normalizer.normalize(self._frame_obs(torch.as_tensor(obs, dtype=torch.float32)))
+
+    def widen_obs_range(self, obs: np.ndarray | torch.Tensor) -> int:
+        """Widens the observation normalizer to cover ``obs`` (M, H, obs_dim) raw, as the network
+        sees it; returns the number of dimensions widened (MinMaxNormalizer.widen)."""
+        obs_t = torch.as_tensor(np.asarray(obs), dtype=torch.float32)
+        return self.obs_normalizer.widen(self._frame_obs(obs_t.reshape(len(obs_t), -1, obs_t.shape[-1])))
+
+    def _to_net_actions(self, actions: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+        """(B, C, action_dim) raw world actions -> the network's normalized actions."""
+        if self.frame is None:
+            return self.action_normalizer.normalize(actions)
+        return self.frame_action_normalizer.normalize(self.frame.actions_to(actions, obs))
+
+    def _from_net_actions(self, x: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+        """The inverse of ``_to_net_actions``."""
+        if self.frame is None:
+            return self.action_normalizer.unnormalize(x)
+        return self.frame.actions_from(self.frame_action_normalizer.unnormalize(x), obs)
+
     def unnormalize_action(self, action: torch.Tensor) -> torch.Tensor:
         return self.action_normalizer.unnormalize(action)
 
@@ -123,13 +173,13 @@ class DiffusionPolicy(nn.Module):
         cfg = self.config
         if obs.dim() != 3 or obs.shape[1:] != (cfg.obs_horizon, cfg.obs_dim):
             raise ValueError(f"obs must have shape (B, {cfg.obs_horizon}, {cfg.obs_dim}), got {tuple(obs.shape)}")
-        return self.obs_encoder(self.obs_normalizer.normalize(obs.to(self.device, torch.float32)).flatten(1))
+        return self.obs_encoder(self.normalize_obs(obs.to(self.device, torch.float32)).flatten(1))
 
     # -- training ------------------------------------------------------------------
     def compute_loss(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
         """batch: {OBS: (B, H, obs_dim), ACTION: (B, C, action_dim)} raw. Returns the ε-prediction MSE."""
         cond = self._obs_cond(batch[keys.OBS])
-        x0 = self.action_normalizer.normalize(batch[keys.ACTION].float())
+        x0 = self._to_net_actions(batch[keys.ACTION].float(), batch[keys.OBS])
         b = x0.shape[0]
         noise = torch.randn(x0.shape, generator=generator, device=x0.device)
         k = torch.randint(0, self.config.num_train_steps, (b,), generator=generator, device=x0.device)
@@ -143,13 +193,27 @@ class DiffusionPolicy(nn.Module):
 
         obs: (B, H, obs_dim) raw; actions: (B, M, C, action_dim) or (B, C, action_dim) in the
         normalized action space; k: int or (B,). Returns noise of the same shape as ``actions``.
+
+        In the object frame the actions are mapped into the network's normalized frame space and
+        the noise back by the inverse of that map's linear part (span scaling and the turn), so
+        the field is the same vector field expressed in the world's normalized action space. At
+        k = 0 (the paper's metric) that is exact up to (1 - sqrt(ᾱ_0)) of the map's offset; at a
+        larger k the clean estimates it implies are all shifted by one constant per observation,
+        which leaves their spread (the ``spread`` signal) unchanged.
         """
         squeeze = actions.dim() == 3
-        x = actions[:, None] if squeeze else actions
+        x = (actions[:, None] if squeeze else actions).to(self.device, torch.float32)
         cond = self._obs_cond(obs)
         if isinstance(k, int):
             k = torch.full((x.shape[0],), k, dtype=torch.long, device=self.device)
-        eps = self._eps(x.to(self.device, torch.float32), k.to(self.device), cond).to(actions.device)
+        if self.frame is not None:
+            obs_d = obs.to(self.device, torch.float32)
+            x = self._to_net_actions(self.action_normalizer.unnormalize(x), obs_d)
+        eps = self._eps(x, k.to(self.device), cond)
+        if self.frame is not None:
+            turned = self.frame.actions_from(eps * self.frame_action_normalizer.span, obs_d, translate=False)
+            eps = turned / self.action_normalizer.span
+        eps = eps.to(actions.device)
         return eps[:, 0] if squeeze else eps
 
     # -- serving: a traced copy of the noise network ---------------------------------------
@@ -228,7 +292,7 @@ class DiffusionPolicy(nn.Module):
         for i, k in enumerate(steps):
             eps = self._eps(x, torch.full((b,), k, dtype=torch.long, device=self.device), cond)
             x = self.schedule.ddim_step(x, eps, k, steps[i + 1] if i + 1 < len(steps) else -1)
-        return self.action_normalizer.unnormalize(x[:, 0]).to(obs.device)
+        return self._from_net_actions(x[:, 0], obs.to(self.device, torch.float32)).to(obs.device)
 
     @torch.no_grad()
     def select_action(self, obs: torch.Tensor) -> torch.Tensor:

@@ -149,7 +149,7 @@ def finetune_policy(
     data = {k: np.concatenate([takeover[k], pretrain[k][: n_pre or 0]]) for k in (keys.OBS, keys.ACTION)}
     sampler = MixedSampler(n_take, n_pre, cfg.ratio)
     policy = copy.deepcopy(parent)
-    widened = policy.obs_normalizer.widen(takeover[keys.OBS]) if cfg.widen_obs_range else 0
+    widened = policy.widen_obs_range(takeover[keys.OBS]) if cfg.widen_obs_range else 0
     tcfg = cfg.train_config(n_take)
     resume = TrainState.load(work_dir) if work_dir is not None and TrainState.exists(work_dir) else None
 

@@ -13,6 +13,7 @@ import torch
 from torch import nn
 
 MIN_SPAN = 1e-3  # dimensions that barely vary in the data are shifted, not stretched
+WIDEN_SLACK = 1e-6  # relative float32 rounding that ``widen`` does not count as outside the range
 
 
 class MinMaxNormalizer(nn.Module):
@@ -45,7 +46,9 @@ class MinMaxNormalizer(nn.Module):
         if not torch.isfinite(x).all():
             raise ValueError("cannot widen a normalizer to data with NaN or inf")
         x_min, x_max, high = x.min(0).values, x.max(0).values, self.low + self.span
-        grow = (x_min < self.low) | (x_max > high)
+        # low + span can round below the data's own maximum: that data is inside, not new
+        slack = WIDEN_SLACK * torch.maximum(high.abs(), self.low.abs()).clamp_min(1.0)
+        grow = (x_min < self.low - slack) | (x_max > high + slack)
         low = torch.minimum(self.low, x_min)
         # only the widened dimensions get a new span: the others keep theirs bit for bit
         self.span.copy_(torch.where(grow, torch.maximum(high, x_max) - low, self.span))

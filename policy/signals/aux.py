@@ -59,7 +59,7 @@ class EnsembleMLP(nn.Module):
 
 def features(policy: DiffusionPolicy, obs: torch.Tensor) -> torch.Tensor:
     """(B, H, obs_dim) raw -> (B, H*obs_dim) normalized, flattened."""
-    return policy.obs_normalizer.normalize(torch.as_tensor(obs, dtype=torch.float32)).flatten(1)
+    return policy.normalize_obs(obs).flatten(1)
 
 
 def norm_action(policy: DiffusionPolicy, action: np.ndarray | torch.Tensor) -> torch.Tensor:

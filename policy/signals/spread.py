@@ -143,7 +143,7 @@ class SpreadSignal(AssistanceSignal):
         abar = float(policy.schedule.alphas_cumprod[cfg.noise_step])
         x0 = renoised_estimates(policy.noise_prediction, batch.obs, center, abar, cfg.noise_step, xi)
         spread = x0[..., DIMS[cfg.dims]].double().var(dim=1, unbiased=False).mean(dim=(1, 2))
-        novelty = observation_novelty(policy.obs_normalizer.normalize(batch.obs)).double()
+        novelty = observation_novelty(policy.normalize_obs(batch.obs)).double()
         out = {"spread": spread.numpy(), "novelty": novelty.numpy()}
         if cfg.hover_weight > 0:
             out["hover"] = self._hover(batch).numpy()
