@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs console-docs clean
+.PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs console-docs frame-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -106,6 +106,19 @@ console-docs: install
 	$(BIN)/hitl docs screenshots --out docs/img
 	$(BIN)/hitl bench console --clients wire --out docs/bench-console-wire.json --quiet || true
 	$(BIN)/hitl bench console --out docs/bench-console-chromium.json --quiet || true
+
+# The object-frame lift policy (docs/policy.md, "The object frame") and its fine-tuning points (docs/benchmarks.md,
+# "finetune-object-frame"). It trains on the same 200 demonstrations as runs/lift-cube: seeds 0-199 of
+# data/demos/lift-cube-dart, linked into their own folder (signals-docs adds 200 more). About 30 min on 2 cores.
+frame-docs: install
+	mkdir -p data/demos/lift-cube-dart-200
+	for i in $$(seq -f "%06g" 0 199); do ln -sf ../lift-cube-dart/lift-cube_seed$$i.mcap data/demos/lift-cube-dart-200/ || exit 1; done
+	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart-200 --out runs/lift-cube-object --frame object --threads 1 --quiet
+	$(BIN)/hitl calibrate --policy runs/lift-cube-object --data data/demos/lift-cube-dart-200
+	$(BIN)/hitl train-signal --policy runs/lift-cube-object --signal spread --data data/demos/lift-cube-dart-200 --quiet
+	$(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:spread full-trajectory expert:grasp \
+		--counts 20 50 100 --cache runs/bench-finetune-obj --section finetune-object-frame --report docs/benchmarks.md \
+		--figures docs/img --json --quiet --threads 2 > docs/bench-finetune-object-frame.json
 
 clean:
 	rm -rf $(VENV) .pytest_cache
