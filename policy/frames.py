@@ -28,7 +28,6 @@ import torch
 FRAME_POINTS = ("eef_pos",)
 FRAME_VECTORS = ("object_to_eef_pos",)
 FRAME_ROTATIONS = ("eef_rot6d", "object_rot6d")
-FRAMES = ("world", "object")
 _HEADING_EPS = 1e-6
 
 

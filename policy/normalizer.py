@@ -49,7 +49,7 @@ class MinMaxNormalizer(nn.Module):
         # low + span can round below the data's own maximum: that data is inside, not new
         slack = WIDEN_SLACK * torch.maximum(high.abs(), self.low.abs()).clamp_min(1.0)
         grow = (x_min < self.low - slack) | (x_max > high + slack)
-        low = torch.minimum(self.low, x_min)
+        low = torch.where(grow, torch.minimum(self.low, x_min), self.low)
         # only the widened dimensions get a new span: the others keep theirs bit for bit
         self.span.copy_(torch.where(grow, torch.maximum(high, x_max) - low, self.span))
         self.low.copy_(low)

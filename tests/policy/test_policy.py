@@ -351,3 +351,8 @@ def test_widening_a_normalizer_covers_new_data_and_keeps_the_rest_exact():
     assert norm.widen(np.zeros((0, 3))) == 0
     with pytest.raises(ValueError, match="NaN or inf"):
         norm.widen(np.array([[np.nan, 0.0, 0.0]]))
+    # the data it was fitted to is inside, even where low + span rounds below the data's maximum
+    data = np.random.default_rng(0).normal(0.3, 0.7, size=(200, 16)).astype(np.float32)
+    fitted = MinMaxNormalizer(16).fit(data)
+    low, span = fitted.low.clone(), fitted.span.clone()
+    assert fitted.widen(data) == 0 and torch.equal(fitted.low, low) and torch.equal(fitted.span, span)
