@@ -196,12 +196,13 @@ def test_train_command_trains_in_the_object_frame(tmp_path, capsys):
             w.write_step(t, obs[t], act[t], act[t, :3], np.array([1.0, 0, 0, 0]), 0.04, t == 11, keys.SOURCE_EXPERT, {})
         w.finish(True, len(obs), "success")
     small = ["--steps", "3", "--batch-size", "8", "--network", "mlp", "--obs-encoder-dims", "16", "--quiet"]
+    small += ["--data", str(demos), "--frame", "object"]
     out = tmp_path / "policy"
-    assert main(["train", "--task", "lift-cube", "--data", str(demos), "--out", str(out), "--frame", "object", *small]) == 0
+    assert main(["train", "--task", "lift-cube", "--out", str(out), *small]) == 0
     policy, doc = load_policy(out)
     assert policy.config.object_frame == FRAME and doc["policy"]["object_frame"]["object_pos"] == FRAME.object_pos
     capsys.readouterr()
     # a task whose observation has no object pose cannot train in its frame: a clear error, nothing written
     bad = tmp_path / "drawer"
-    assert main(["train", "--task", "open-drawer", "--data", str(demos), "--out", str(bad), "--frame", "object", *small]) == 2
+    assert main(["train", "--task", "open-drawer", "--out", str(bad), *small]) == 2
     assert "object_pos" in capsys.readouterr().err and not bad.exists()
