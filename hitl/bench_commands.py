@@ -206,6 +206,8 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         given["return_after"] = args.return_after
     if args.hand_back is not None:
         given["hand_back"] = args.hand_back
+    if args.stride is not None:
+        given["stride"] = args.stride
     cfg = FinetuneBenchConfig.quick(**given) if args.quick else FinetuneBenchConfig(**given)  # validated first
     torch.set_num_threads(args.threads)
     result = run_bench(cfg, args.cache, progress=not args.quiet)
@@ -253,7 +255,16 @@ def register_finetune(bench: argparse._SubParsersAction) -> None:
         "--return-after", type=int, default=None, help="the operator hands back after N calm steps (default 1)"
     )
     q.add_argument(
-        "--hand-back", choices=["continuous", "budgeted"], default=None, help="how takeovers end (default continuous)"
+        "--hand-back",
+        choices=["continuous", "budgeted", "operator"],
+        default=None,
+        help="how takeovers end (default continuous; operator: the operator hands back once the object is held)",
+    )
+    q.add_argument(
+        "--stride",
+        type=int,
+        default=None,
+        help="fine-tune on one step in N of each takeover or demonstration (default 1)",
     )
     q.add_argument("--section", default=None, help="the report section's name (default finetune / finetune-quick)")
     q.add_argument("--cache", default="runs/bench-finetune")

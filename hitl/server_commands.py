@@ -56,7 +56,7 @@ def _cmd_operator_bot(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request is noise
-    bot = OperatorBot(args.url, args.token)
+    bot = OperatorBot(args.url, args.token, hands_back_when_held=args.hand_back_when_held)
     try:
         bot.run(max_takeovers=args.takeovers)
     except KeyboardInterrupt:
@@ -185,6 +185,11 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--url", required=True, help="service URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--token", required=True, help="an operator token")
     p.add_argument("--takeovers", type=int, default=None, help="stop after this many takeovers")
+    p.add_argument(
+        "--hand-back-when-held",
+        action="store_true",
+        help="release a robot once the object is held (default: drive until the service hands back)",
+    )
     p.set_defaults(func=_cmd_operator_bot)
 
     q = bench.add_parser("finetune-load", help="the fleet's control rate while a fine-tuning job runs beside it")

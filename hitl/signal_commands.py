@@ -128,7 +128,13 @@ def _cmd_assist(args: argparse.Namespace) -> int:
     driver = signals.pop(args.driver)
     seeds = list(range(args.seed, args.seed + args.episodes))
     cfg = AssistConfig(
-        mode=args.mode, budget=args.budget, cooldown=args.cooldown, watchdog=args.watchdog, n_envs=args.envs
+        mode=args.mode,
+        budget=args.budget,
+        cooldown=args.cooldown,
+        watchdog=args.watchdog,
+        n_envs=args.envs,
+        return_after=None if args.hand_back_when_held else 1,  # continuous: the operator alone, or the paper's rule
+        operator_hands_back=args.hand_back_when_held,
     )
     episodes, timing = run_assisted(policy, args.task or info["task"], seeds, driver, signals, cfg, not args.quiet)
     out = {
@@ -138,6 +144,7 @@ def _cmd_assist(args: argparse.Namespace) -> int:
         "budget": args.budget if args.mode == "budgeted" else None,
         "cooldown": args.cooldown,
         "watchdog": args.watchdog,
+        "operator_hands_back_when_held": args.hand_back_when_held,
         **summarize_assisted(episodes),
         "shadow_skipped": skipped,
         "seconds": timing["seconds"],
@@ -225,6 +232,11 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--budget", type=int, default=4, help="operator steps per assistance event (budgeted)")
     p.add_argument("--cooldown", type=int, default=0, help="policy steps after a hand-back without a new request")
     p.add_argument("--watchdog", type=float, default=None, help="also ask once at this fraction of the horizon")
+    p.add_argument(
+        "--hand-back-when-held",
+        action="store_true",
+        help="the operator hands back once the object is held (continuous: only then; budgeted: or at the budget)",
+    )
     p.add_argument("--episodes", type=int, default=10)
     p.add_argument("--seed", type=int, default=1000)
     p.add_argument("--envs", type=int, default=4)

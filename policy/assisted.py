@@ -13,8 +13,11 @@ Modes, as in the paper: ``budgeted`` gives the operator ``budget`` steps per ass
 ``continuous`` keeps the operator in control until the driver no longer wants help (for
 ``thrifty`` this is its switch-back rule; for the others the score back under the threshold): the
 controller's ``continuous`` with ``return_after = 1`` (``AssistConfig.return_after``: more calm steps
-keep the operator in control longer), since the simulated operator never hands back on its own.
-On hand-back the policy restarts from the current pose with a fresh observation history.
+keep the operator in control longer), since by default the simulated operator never hands back on
+its own. With ``operator_hands_back`` it does, once the object it was asked about is held
+(``Expert.holding``), as an operator who was called for a grasp would; with ``return_after = None``
+that is the only hand-back. On hand-back the policy restarts from the current pose with a fresh
+observation history.
 """
 
 from __future__ import annotations
@@ -49,7 +52,11 @@ class AssistConfig:
     n_envs: int = 4
     seed: int = 0
     batch_invariant: bool = False  # the controller's robot-by-robot mode (to compare with the service)
-    return_after: int = 1  # continuous mode: hand back after this many calm operator steps (the paper's: 1)
+    # continuous mode: hand back after this many calm operator steps (the paper's: 1; None: only the operator)
+    return_after: int | None = 1
+    # the simulated operator hands back once the scene shows the object held (``Expert.holding``), as a
+    # console operator asked to help with a grasp does
+    operator_hands_back: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -58,8 +65,10 @@ class AssistConfig:
             raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
         for name in ("budget", "n_envs", "return_after"):
             v = getattr(self, name)
-            if not (isinstance(v, int) and v >= 1):
+            if not (isinstance(v, int) and v >= 1) and not (name == "return_after" and v is None):
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if self.return_after is None and self.mode == "continuous" and not self.operator_hands_back:
+            raise ValueError("continuous mode with return_after None needs operator_hands_back: nothing hands back")
 
 
 @dataclass
@@ -73,6 +82,7 @@ class AssistedEpisode:
     actions: list[np.ndarray] = field(default_factory=list)  # the action sent at each step (10,)
     policy_in_control: list[bool] = field(default_factory=list)  # before each step's decision
     events: int = 0  # assistance requests by the driver
+    asked_at: list[int] = field(default_factory=list)  # the steps (from 0) on which the robot asked
     scores: dict[str, list[float]] = field(default_factory=dict)  # every signal, every step
     wants: dict[str, list[bool]] = field(default_factory=dict)
     # the operator's steps as fine-tuning data: (observation (obs_dim,), absolute action (10,)), in order
@@ -89,6 +99,7 @@ class AssistedEpisode:
             "steps": self.steps,
             "assisted_steps": self.assisted_steps,
             "events": self.events,
+            "asked_at": self.asked_at,
         }
 
 
@@ -97,13 +108,16 @@ class ExpertOperator:
     (``OperatorView``: pose, gripper and the scene, as ``hitl operator-bot`` sees them through the
     API). At each takeover it picks up where the scene stands (``Expert.resume``, seeded by the
     episode seed and the event count); its commands are clamped to the teleop limits, as a console's
-    are."""
+    are. With ``hands_back_when_held`` it hands the robot back once the object, not held when it took
+    over, is held (``Expert.holding``): it was asked for help, it gave the grasp."""
 
-    def __init__(self, task_name: str, seeds: list[int]) -> None:
+    def __init__(self, task_name: str, seeds: list[int], hands_back_when_held: bool = False) -> None:
         self.task_name, self.seeds = task_name, seeds
+        self.hands_back_when_held = hands_back_when_held
         self.experts: dict[int, object] = {}
         self.events: dict[int, int] = {}
         self.clock: dict[int, int] = {}  # the robot's step clock after this operator's last command
+        self.held_at_start: dict[int, bool] = {}
 
     def take_over(self, robot_id: int, frame: RobotFrame) -> None:
         """Plans from the view, or carries on with its plan when the policy has not moved the robot
@@ -113,6 +127,13 @@ class ExpertOperator:
         view = OperatorView.from_frame(self.task_name, frame)
         rng = np.random.default_rng([self.seeds[robot_id], self.events[robot_id]])
         expert.resume(view, rng, carry_on=self.clock.get(robot_id) == frame.clock)
+        self.held_at_start[robot_id] = expert.holding(view)
+
+    def hands_back(self, robot_id: int, frame: RobotFrame) -> bool:
+        """Whether this operator gives the robot back now (before commanding this frame)."""
+        if not self.hands_back_when_held or self.held_at_start.get(robot_id, True):
+            return False
+        return self.experts[robot_id].holding(OperatorView.from_frame(self.task_name, frame))
 
     def command(self, robot_id: int, frame: RobotFrame) -> TeleopCommand:
         self.clock[robot_id] = frame.clock + 1
@@ -165,6 +186,8 @@ def run_assisted(
         if step.source == keys.SOURCE_OPERATOR:  # called before the step: the observation it acted on
             ep.takeover_pairs.append((task.observe().astype(np.float32), np.asarray(step.action, np.float32)))
         ep.policy_in_control.append(step.source == keys.SOURCE_POLICY or step.asked)
+        if step.asked:
+            ep.asked_at.append(len(ep.operator) - 1)
         ep.events += int(step.asked)
         for name in signals:  # NaN / False on the hold step while the operator takes over (not scored)
             ep.scores[name].append(step.scores.get(name, float("nan")))
@@ -178,7 +201,7 @@ def run_assisted(
             seeds,
             cfg.n_envs,
             record,
-            ExpertOperator(task_name, seeds),
+            ExpertOperator(task_name, seeds, hands_back_when_held=cfg.operator_hands_back),
             progress,
             f"assisted {task_name} ({driver_name})" if driver is not None else f"shadow {task_name}",
         )

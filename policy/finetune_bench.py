@@ -4,7 +4,8 @@ From one pretrained lift policy: collect fine-tuning data on the unseen objects 
 
 - ``takeover:<signal>``: the operator's steps (the scripted expert through the operator view) in
   assisted rollouts where ``<signal>`` asks for help, with the demo fleet's hand-back rules
-  (continuous, cooldown 10), whole takeovers drawn in a seeded random order;
+  (continuous, cooldown 10; ``hand_back="operator"``: the operator keeps control until the object
+  is held, ``Expert.holding``), whole takeovers drawn in a seeded random order;
 - ``full-trajectory``: whole scripted-expert demonstrations, one after the other;
 - ``expert:grasp``: the same demonstrations cut to the steps around the grasp (``GRASP_WINDOW``): the
   data of a signal that asks exactly at the grasp and an operator who hands back once the object is
@@ -38,6 +39,7 @@ FULL = "full-trajectory"
 GRASP = "expert:grasp"
 GRASP_WINDOW = (20, 13)  # expert:grasp keeps this many steps before the gripper first closes, and from it on
 UNSEEN = ("lift-nut", "lift-hammer", "lift-hook")
+HAND_BACKS = ("continuous", "budgeted", "operator")
 
 
 @dataclass(frozen=True)
@@ -54,14 +56,20 @@ class FinetuneBenchConfig:
     # the demo fleet's rules (configs/demo.toml): the operator keeps control while the signal wants help,
     # then `cooldown` policy steps before the robot may ask again. (With budgeted 4-step takeovers the
     # operator only ever corrects the approach: no takeover of 4 steps reaches the grasp.)
-    hand_back: str = "continuous"
+    hand_back: str = "continuous"  # or "budgeted", or "operator": continuous until the operator hands back, once held
     budget: int = 4
     cooldown: int = 10
     return_after: int = 1  # continuous: the operator hands back after this many steps the signal is calm
+    # fine-tune on every stride-th step of each run of samples (each source alike); a policy with
+    # observation and action horizons of 1 only (a subsampled run has no chunks of consecutive actions)
+    stride: int = 1
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
 
     def __post_init__(self) -> None:
         from policy.signals.registry import SIGNALS
+
+        if self.hand_back not in HAND_BACKS:
+            raise ValueError(f"hand_back must be one of {HAND_BACKS}, got {self.hand_back!r}")
 
         for source in self.sources:
             kind, _, signal = source.partition(":")
@@ -70,6 +78,8 @@ class FinetuneBenchConfig:
                     f"unknown source {source!r}: {FULL}, {GRASP} or takeover:SIGNAL with SIGNAL one of "
                     + ", ".join(SIGNALS)
                 )
+        if not (isinstance(self.stride, int) and not isinstance(self.stride, bool) and self.stride >= 1):
+            raise ValueError(f"stride must be an integer >= 1, got {self.stride!r}")
         if not self.counts or any(not (isinstance(k, int) and k >= 1) for k in self.counts):
             raise ValueError(f"counts must be integers >= 1, got {self.counts!r}")
 
@@ -123,9 +133,10 @@ class Samples:
             t: float(np.mean(np.concatenate([a[:, -1] for _, a in r]) > 0)) if r else 0.0 for t, r in self.runs.items()
         }
 
-    def first(self, k: int) -> TakeoverSet:
+    def first(self, k: int, stride: int = 1) -> TakeoverSet:
         """The first ``k`` samples, ``k / len(tasks)`` from each task (the remainder to the first ones),
-        whole runs in order, the last one cut."""
+        whole runs in order, the last one cut; with ``stride`` s, every s-th step of each run (its steps
+        0, s, 2s, ...: the runs as recorded at 1/s of the control rate)."""
         tasks = list(self.runs)
         share = [k // len(tasks) + (1 if i < k % len(tasks) else 0) for i in range(len(tasks))]
         obs, act, ends, total = [], [], [], 0
@@ -134,7 +145,7 @@ class Samples:
             for o, a in self.runs[task]:
                 if left <= 0:
                     break
-                o, a = o[:left], a[:left]
+                o, a = o[::stride][:left], a[::stride][:left]
                 obs.append(o)
                 act.append(a)
                 total += len(o)
@@ -175,6 +186,16 @@ def first_close_summary(episodes) -> dict | None:
         "median_to_grasp_m": median("first_close_to_grasp_m"),
         "median_to_origin_m": median("first_close_to_origin_m"),
     }
+
+
+def _signal_digest(policy_dir: str, source: str) -> str | None:
+    """For ``takeover:SIGNAL``, a digest of the signal's saved config and calibration (takeovers collected
+    with an older calibration are not reused); None for the other sources or an unsaved signal."""
+    from policy.signals.registry import CONFIG, signal_dir
+
+    kind, _, name = source.partition(":")
+    path = signal_dir(policy_dir, name) / CONFIG if kind == "takeover" else None
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path is not None and path.is_file() else None
 
 
 def _runs_from_episodes(episodes, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -219,11 +240,13 @@ def collect(
                     new = [grasp_window(o, a) for o, a in new]
             elif source.startswith("takeover:"):
                 signal = load_signal(policy, policy_dir, source.split(":", 1)[1])
+                by_operator = cfg.hand_back == "operator"
                 assist = AssistConfig(
-                    mode=cfg.hand_back,
+                    mode="continuous" if by_operator else cfg.hand_back,
                     budget=cfg.budget,
                     cooldown=cfg.cooldown,
-                    return_after=cfg.return_after,
+                    return_after=None if by_operator else cfg.return_after,
+                    operator_hands_back=by_operator,
                     n_envs=4,
                     seed=cfg.collect_seed,
                 )
@@ -243,6 +266,8 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     parent, info = load_policy(cfg.policy)
+    if cfg.stride > 1 and (parent.config.obs_horizon > 1 or parent.config.action_horizon > 1):
+        raise ValueError(f"stride {cfg.stride} needs a policy with observation and action horizons of 1")
     pre_train, _, _ = pretraining_split(parent, info, info["dataset"]["folder"])
     tasks = [cfg.train_task, *cfg.unseen]
     start = time.perf_counter()
@@ -267,7 +292,7 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
 
     base_key = "pretrained-" + cfg.digest("pretrained", tasks, cfg.eval_episodes, cfg.eval_seed)
     pretrained = cached(base_key, lambda: success(parent))
-    need = -(-max(cfg.counts) // len(cfg.unseen))
+    need = -(-max(cfg.counts) // len(cfg.unseen)) * cfg.stride
     points, skipped, collected = [], {}, {}
     todo = [(s, k) for s in cfg.sources for k in cfg.counts]
     bar = tqdm(todo, desc="bench finetune", unit="point", disable=not progress)
@@ -280,6 +305,7 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
             what = [cfg.policy, cfg.unseen, cfg.collect_seed, cfg.collect_rounds, cfg.hand_back, cfg.budget]
             what += [cfg.cooldown, source, need] + ([cfg.return_after] if cfg.return_after != 1 else [])
             what += [GRASP_WINDOW] if source == GRASP else []
+            what += [_signal_digest(cfg.policy, source)]
             digest = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
             stored = cache / f"samples-{source.replace(':', '_')}-{digest}.npz"
             try:
@@ -301,7 +327,7 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
 
         def compute(source=source, k=k) -> dict:
             try:
-                data = samples[source].first(k)
+                data = samples[source].first(k, cfg.stride)
             except ValueError as exc:
                 return {"error": str(exc)}
             arrays = data.arrays(parent.config.obs_horizon, parent.config.action_horizon)

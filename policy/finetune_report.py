@@ -24,7 +24,7 @@ def summarize(result: dict) -> dict:
         if "success" in p:
             curves.setdefault(p["source"], {})[p["samples"]] = (_rate(p["success"], train), _rate(p["success"], unseen))
     base_unseen = _rate(pre, unseen)
-    default = next((s for s in cfg["sources"] if s.startswith("takeover:spread")), None)
+    default = next((s for s in cfg["sources"] if s.startswith("takeover:")), None)  # the first listed
     verdict = None
     if default in curves and FULL in curves:
         small = {k: v for k, v in curves[default].items() if k <= 100}
@@ -33,6 +33,7 @@ def summarize(result: dict) -> dict:
             lift = small[best_k][1] - base_unseen
             full = curves[FULL].get(best_k, (None, None))[1]
             verdict = {
+                "source": default,
                 "samples": best_k,
                 "unseen_lift": lift,
                 "lift_goal_met": lift >= 0.4,
@@ -111,6 +112,14 @@ def _first_close_table(result: dict) -> list[str]:
     return [*lines, ""]
 
 
+def _hand_back(cfg: dict) -> str:
+    if cfg["hand_back"] == "budgeted":
+        return f"budgeted hand-back ({cfg['budget']} operator steps per request), "
+    if cfg["hand_back"] == "operator":
+        return "the operator hands back once the object is held, "
+    return f"continuous hand-back (back after {cfg.get('return_after', 1)} calm step(s)), "
+
+
 def markdown(result: dict, summary: dict, figure: Path | None, report: Path, command: str) -> str:
     cfg = result["config"]
     unseen = ", ".join(cfg["unseen"])
@@ -124,12 +133,13 @@ def markdown(result: dict, summary: dict, figure: Path | None, report: Path, com
         f"on the first K samples of its source (K/{len(cfg['unseen'])} per unseen task) with {_mix(cfg)} mini-batches "
         f"against the pretraining set, then rolls out {cfg['eval_episodes']} seeded episodes per task "
         f"(seeds from {cfg['eval_seed']}) through the controller. Takeover data: the scripted expert as operator, "
+        + _hand_back(cfg)
+        + f"cooldown {cfg['cooldown']}."
         + (
-            f"budgeted hand-back ({cfg['budget']} operator steps per request), "
-            if cfg["hand_back"] == "budgeted"
-            else f"continuous hand-back (back after {cfg.get('return_after', 1)} calm step(s)), "
-        )
-        + f"cooldown {cfg['cooldown']}.",
+            f" Every source is subsampled: one step in {cfg['stride']} of each takeover or demonstration."
+            if cfg.get("stride", 1) > 1
+            else ""
+        ),
         "",
         "| source | samples | training object | unseen objects | steps |",
         "|---|---|---|---|---|",
@@ -164,7 +174,8 @@ def markdown(result: dict, summary: dict, figure: Path | None, report: Path, com
     if v:
         lines.append(
             f"**Goal** (takeover data with ≤ 100 samples lifts unseen-object success by ≥ 0.4 and beats "
-            f"full-trajectory data at the same count): at K = {v['samples']}, unseen success "
+            f"full-trajectory data at the same count), for `{v.get('source', 'takeover:spread')}`: at K = "
+            f"{v['samples']}, unseen success "
             f"{summary['pretrained']['unseen']:.2f} → {summary['pretrained']['unseen'] + v['unseen_lift']:.2f} "
             f"(+{v['unseen_lift']:.2f}, {'met' if v['lift_goal_met'] else 'not met'}); full-trajectory at that "
             f"count: {v['full_trajectory_at_same_count']:.2f} "

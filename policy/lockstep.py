@@ -32,6 +32,10 @@ class SimulatedOperator(Protocol):
 
     def command(self, robot_id: int, frame: RobotFrame) -> TeleopCommand: ...
 
+    def hands_back(self, robot_id: int, frame: RobotFrame) -> bool:
+        """Whether the operator gives a robot it drives back to the policy now, before commanding ``frame``."""
+        ...
+
 
 @dataclass
 class Outcome:
@@ -86,6 +90,9 @@ def run_lockstep(
                         if mode == Mode.WAITING:  # the simulated operator answers at once
                             controller.take_over(rid)
                             operator.take_over(rid, frames[rid])
+                        elif mode == Mode.TELEOP and operator.hands_back(rid, frames[rid]):
+                            controller.release(rid)  # the policy acts on this frame
+                            continue
                         if mode != Mode.AUTONOMOUS:
                             commands[rid] = operator.command(rid, frames[rid])
                 steps = controller.step(frames, commands)

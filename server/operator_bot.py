@@ -29,8 +29,13 @@ class OperatorBot:
     back, reset, paused, faulted or whose episode ends mid-takeover ends that takeover; network errors
     and server errors are logged and retried with backoff."""
 
-    def __init__(self, url: str, token: str, heartbeat_s: float = 1.0, timeout: float = 10.0) -> None:
+    def __init__(
+        self, url: str, token: str, heartbeat_s: float = 1.0, timeout: float = 10.0, hands_back_when_held: bool = False
+    ) -> None:
+        """hands_back_when_held: release a robot once the object it was asked about is held (``Expert.holding``;
+        as ``policy.assisted.ExpertOperator`` does with it), instead of driving until the service hands back."""
         self.api = url.rstrip("/") + "/api/v1"
+        self.hands_back_when_held = hands_back_when_held
         self.client = httpx.Client(headers={"Authorization": f"Bearer {token}"}, timeout=timeout)
         self.heartbeat_s = heartbeat_s
         self.takeovers = 0
@@ -69,7 +74,9 @@ class OperatorBot:
         steps = 0
         try:
             raw = self._get(f"/robots/{robot_id}/view")
-            expert = self._expert_for(robot_id, self._view(robot_id, raw), raw, seed)
+            view = self._view(robot_id, raw)
+            expert = self._expert_for(robot_id, view, raw, seed)
+            held_at_start = expert.holding(view)
             last_beat = time.monotonic()
             body = None  # a command refused with 429 is sent again, not recomputed (the expert has a state)
             while steps < max_steps:
@@ -81,7 +88,12 @@ class OperatorBot:
                     break
                 if body is None:
                     raw = self._get(f"/robots/{robot_id}/view")
-                    cmd = expert.act(self._view(robot_id, raw)).clamped(LIMITS)  # send what the robot will execute
+                    view = self._view(robot_id, raw)
+                    if self.hands_back_when_held and not held_at_start and expert.holding(view):
+                        log.info("robot %d: object held after %d steps, handing back", robot_id, steps)
+                        self.client.post(f"{self.api}/robots/{robot_id}/release")
+                        break
+                    cmd = expert.act(view).clamped(LIMITS)  # send what the robot will execute
                     body = {
                         "delta_pos": [float(x) for x in cmd.delta_pos],
                         "delta_rot": [float(x) for x in cmd.delta_rot],

@@ -31,6 +31,7 @@ GRIPPED = 0.07  # finger gap (m) under which the gripper counts as closed (0.08 
 # resuming mid-task (``Expert.resume``): the end effector counts as at the grasp within AT_GRASP, and
 # a carried cup as over its target within ALIGNED horizontally (metres)
 AT_GRASP = 0.02
+HELD_ABOVE = 0.01  # a lifted object counts as held once this far (m) above where it rested
 ALIGNED = 0.01
 # Gripper pointing down (grip-site z = world -z) at yaw 0. The Panda's fingers
 # close along the site's x axis, so a grasped bar lies along the site's y axis;
@@ -117,6 +118,12 @@ class Expert:
         """Index of the first phase still to do; 0 unless an expert knows better."""
         return 0
 
+    def holding(self, task: Task) -> bool:
+        """Whether the scene shows what this expert grasps held (judged, as ``resume`` does, from what an
+        operator sees): the point where an operator asked to help with a grasp hands the robot back
+        (``policy.assisted.ExpertOperator``). False for an expert that knows no such point."""
+        return False
+
     def _index(self, name: str) -> int:
         return next(i for i, p in enumerate(self.phases) if p.name == name)
 
@@ -199,12 +206,17 @@ class LiftExpert(Expert):
             Phase("lift", up, CLOSED, tol=0.01),
         ]
 
+    def holding(self, task: Task) -> bool:
+        """The gripper closed and the object off the table (1 cm above where it rested)."""
+        s = task.privileged()
+        return bool(task.gripper_opening() < GRIPPED and s["object_pos"][2] > s["rest_z"] + HELD_ABOVE)
+
     def start_phase(self, task: Task) -> int:
         s = task.privileged()
         pos = task.ee_pose()[0]
         closed = task.gripper_opening() < GRIPPED
         at_grasp = np.linalg.norm(pos - self._target("descend", task)) < AT_GRASP
-        if closed and s["object_pos"][2] > s["rest_z"] + 0.01:  # already holding it off the table
+        if self.holding(task):  # already holding it off the table
             return self._index("lift")
         if at_grasp:  # at the grasp: close (again), and give the fingers their time before lifting
             return self._index("close")
@@ -267,12 +279,17 @@ class CupStackExpert(Expert):
             Phase("retreat", retreat_up, OPEN, tol=0.01),
         ]
 
+    def holding(self, task: Task) -> bool:
+        """The gripper closed and the green cup 2 cm off the table (carried)."""
+        s = task.privileged()
+        return bool(task.gripper_opening() < GRIPPED and s["green_bottom_z"] > s["table_z"] + 0.02)
+
     def start_phase(self, task: Task) -> int:
         s = task.privileged()
         pos = task.ee_pose()[0]
         closed = task.gripper_opening() < GRIPPED
         at_grasp = np.linalg.norm(pos - s["green_grasp_point"]) < AT_GRASP
-        if closed and s["green_bottom_z"] > s["table_z"] + 0.02:  # carrying the green cup
+        if self.holding(task):  # carrying the green cup
             over = self._target("carry", task)
             if np.linalg.norm(pos[:2] - over[:2]) < ALIGNED:  # over the red cup: go on lowering
                 return self._index("lower")
@@ -326,12 +343,17 @@ class OpenDrawerExpert(Expert):
             Phase("pull", pull_out, CLOSED, tol=0.01, max_steps=120),
         ]
 
+    def holding(self, task: Task) -> bool:
+        """The gripper closed within 2 cm of the intended drawer's handle."""
+        handle = np.asarray(task.privileged()["handles"])[self._drawer]
+        return bool(task.gripper_opening() < GRIPPED and np.linalg.norm(task.ee_pose()[0] - handle) < AT_GRASP)
+
     def start_phase(self, task: Task) -> int:
         s = task.privileged()
         pos = task.ee_pose()[0]
         handle = np.asarray(s["handles"])[self._drawer]
         closed = task.gripper_opening() < GRIPPED
-        if closed and np.linalg.norm(pos - handle) < AT_GRASP:  # holding the intended handle
+        if self.holding(task):  # holding the intended handle
             return self._index("pull")
         if not closed and np.linalg.norm(pos - handle) < AT_GRASP:  # at the handle, fingers still open
             return self._index("close")

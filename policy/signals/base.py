@@ -279,6 +279,27 @@ class RobotNoise:
                 self._generators.pop(int(i), None)
 
 
+class Patience:
+    """Per-robot count of consecutive steps over the threshold; a robot wants help once its count
+    reaches ``patience`` (and the count restarts at the first step under it)."""
+
+    def __init__(self, patience: int) -> None:
+        self.patience = patience
+        self._run = PerRobot(int)
+
+    def update(self, over: np.ndarray, robot_ids: Iterable[int]) -> np.ndarray:
+        """over: (B,) bool this step -> (B,) bool wants help."""
+        out = np.zeros(len(over), dtype=bool)
+        for j, rid in enumerate(robot_ids):
+            count = self._run.get(int(rid)) + 1 if over[j] else 0
+            self._run.set(int(rid), count)
+            out[j] = count >= self.patience
+        return out
+
+    def reset(self, robot_ids: list[int] | None) -> None:
+        self._run.reset(robot_ids)
+
+
 class PerRobot:
     """Per-robot trigger state: a dict from robot id to a value, created on first use."""
 

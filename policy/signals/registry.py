@@ -19,6 +19,7 @@ from policy.signals.critics import HulaSignal, ThriftySignal
 from policy.signals.reference import FullTeleopSignal, RandomSignal
 from policy.signals.sampling import DenoisingSignal, DiffDaggerSignal, OutputVarianceSignal, StacSignal
 from policy.signals.spread import SpreadSignal
+from policy.signals.stall import StallSignal
 
 SIGNALS: dict[str, type[AssistanceSignal]] = {
     "denoising": DenoisingSignal,
@@ -28,6 +29,7 @@ SIGNALS: dict[str, type[AssistanceSignal]] = {
     "stac": StacSignal,
     "hula-offline": HulaSignal,
     "spread": SpreadSignal,
+    "stall": StallSignal,
     "full-teleop": FullTeleopSignal,
     "random": RandomSignal,
 }

@@ -16,6 +16,7 @@ from tqdm import tqdm
 from policy.signals.base import (
     AssistanceSignal,
     CalibrationData,
+    Patience,
     PerRobot,
     Scores,
     SignalConfig,
@@ -181,7 +182,7 @@ class DiffDaggerSignal(AssistanceSignal):
 
     def __init__(self, policy, config=None) -> None:
         super().__init__(policy, config)
-        self._over = PerRobot(int)
+        self._over = Patience(self.config.patience)
 
     def reset(self, robot_ids: Iterable[int] | None = None) -> None:
         self._over.reset(self._ids_for(robot_ids))
@@ -217,13 +218,7 @@ class DiffDaggerSignal(AssistanceSignal):
         return Scores(self.diffusion_loss(batch.obs, action).numpy())
 
     def wants_help(self, scores: Scores, state: TriggerState) -> np.ndarray:
-        over = np.asarray(scores.value) > self.threshold
-        out = np.zeros(len(over), dtype=bool)
-        for j, rid in enumerate(state.robot_ids):
-            count = self._over.get(int(rid)) + 1 if over[j] else 0
-            self._over.set(int(rid), count)
-            out[j] = count >= self.config.patience
-        return out
+        return self._over.update(np.asarray(scores.value) > self.threshold, state.robot_ids)
 
     def _calibrate(self, data: CalibrationData, progress: bool) -> dict:
         train = subsample(data.train, self.config.max_calibration_steps, self.config.seed)

@@ -57,6 +57,7 @@ def test_full_teleop_in_continuous_mode_lets_the_operator_finish_the_task():
     ep = episodes[0]
     # the robot asks at its first step (and holds), then the operator drives to the end
     assert ep.success and ep.events == 1 and not ep.operator[0] and all(ep.operator[1:])
+    assert ep.asked_at == [0] and ep.summary()["asked_at"] == [0]
     assert TriggerState.autonomous([1]).teleop.tolist() == [False]
 
 
@@ -79,3 +80,50 @@ def test_an_operator_taking_over_picks_up_where_the_scene_stands(task_cache):
     late = make_expert("lift-cube")
     late.resume(task, np.random.default_rng(2))
     assert late.phase == "lift"  # keeps holding and lifts, instead of opening to start over
+
+
+def test_an_operator_who_hands_back_when_held_gives_the_robot_back_holding_the_object(task_cache):
+    from policy.assisted import ExpertOperator
+    from sim.frame import RobotFrame
+
+    task = task_cache("lift-cube")
+    task.reset(3)
+    operator = ExpertOperator("lift-cube", [3], hands_back_when_held=True)
+    frame = RobotFrame.from_task(task)
+    operator.take_over(0, frame)
+    steps = 0
+    while not operator.hands_back(0, frame):
+        assert steps < 200, "the operator never handed back"
+        result = task.step(task.teleop(operator.command(0, frame)).action)
+        frame = RobotFrame.from_task(task, result)
+        steps += 1
+    s = task.privileged()
+    assert task.gripper_opening() < 0.07 and s["object_pos"][2] > s["rest_z"] + 0.01 and steps > 10
+    # asked again while the object is held, it does not hand straight back; the default operator never does
+    operator.take_over(0, frame)
+    assert not operator.hands_back(0, frame)
+    keeps = ExpertOperator("lift-cube", [3])
+    keeps.take_over(0, frame)
+    assert not keeps.hands_back(0, frame)
+
+
+def test_operator_hand_back_in_a_rollout_returns_control_once():
+    policy = tiny_policy()
+    cfg = AssistConfig(mode="continuous", return_after=None, operator_hands_back=True, n_envs=1)
+    episodes, _ = run_assisted(policy, "lift-cube", [3], _Every(10_000), {}, cfg, progress=False)
+    ep = episodes[0]
+    flags = np.asarray(ep.operator, int)
+    starts = np.flatnonzero(np.diff(np.r_[0, flags]) == 1)
+    # asked at the first step, one takeover, then the policy drives the rest of the episode
+    assert ep.events == 1 and ep.asked_at == [0] and len(starts) == 1 and starts[0] == 1
+    assert 10 < flags.sum() < ep.steps - 1 and not flags[-1]
+    assert ep.actions[flags.sum()][-1] > 0  # the operator's last action keeps the gripper closed
+
+
+def test_assist_config_refuses_a_continuous_mode_nothing_hands_back():
+    import pytest
+
+    with pytest.raises(ValueError, match="nothing hands back"):
+        AssistConfig(mode="continuous", return_after=None)
+    with pytest.raises(ValueError, match="return_after"):
+        AssistConfig(return_after=0)

@@ -40,6 +40,10 @@ def test_the_first_k_samples_are_whole_runs_in_order_spread_over_the_tasks(tmp_p
     with pytest.raises(ValueError, match="only 9 samples of a collected, 10 wanted"):
         samples.first(20)
 
+    got = samples.first(7, stride=2)  # every other step of each run: a 0 2 | 100 102, b 200 202 | 300
+    assert got.obs[:, 0].tolist() == [0, 2, 100, 102, 200, 202, 300]
+    assert got.episode_ends.tolist() == [2, 4, 6, 7]
+
 
 def test_the_grasp_window_keeps_the_steps_around_the_first_close():
     before, after = GRASP_WINDOW
@@ -82,6 +86,12 @@ def test_the_verdict_takes_the_default_signals_best_count_up_to_100():
     v = summarize(result)["verdict"]
     assert v["full_trajectory_at_same_count"] == pytest.approx(0.6) and not v["beats_full_trajectory"]
 
+    # the verdict is on the first takeover source listed
+    result["config"]["sources"] = ["takeover:stall", "takeover:spread", FULL]
+    result["points"].append(_point("takeover:stall", 100, (7, 8)))
+    v = summarize(result)["verdict"]
+    assert v["source"] == "takeover:stall" and v["samples"] == 100 and v["unseen_lift"] == pytest.approx(0.7)
+
 
 def test_the_config_refuses_unknown_sources_and_bad_counts_before_anything_runs():
     assert FinetuneBenchConfig(sources=(GRASP, FULL, "takeover:spread")).sources[0] == GRASP
@@ -91,6 +101,25 @@ def test_the_config_refuses_unknown_sources_and_bad_counts_before_anything_runs(
     for counts in ((), (0,), (20, 2.5)):
         with pytest.raises(ValueError, match="counts must be integers >= 1"):
             FinetuneBenchConfig(counts=counts)
+    assert FinetuneBenchConfig(hand_back="operator", stride=2).stride == 2
+    with pytest.raises(ValueError, match="hand_back must be one of"):
+        FinetuneBenchConfig(hand_back="later")
+    for stride in (0, 1.5, True):
+        with pytest.raises(ValueError, match="stride must be an integer >= 1"):
+            FinetuneBenchConfig(stride=stride)
+
+
+def test_takeovers_are_collected_again_when_the_signal_is_recalibrated(tmp_path):
+    from policy.finetune_bench import _signal_digest
+
+    folder = tmp_path / "signals" / "stall"
+    assert _signal_digest(str(tmp_path), "takeover:stall") is None  # not trained: nothing to tell apart
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text('{"calibration": {"threshold": 0.3}}')
+    first = _signal_digest(str(tmp_path), "takeover:stall")
+    (folder / "config.json").write_text('{"calibration": {"threshold": 0.4}}')
+    assert first is not None and _signal_digest(str(tmp_path), "takeover:stall") != first
+    assert _signal_digest(str(tmp_path), FULL) is None
 
 
 def test_the_cli_names_a_bad_source(capsys):

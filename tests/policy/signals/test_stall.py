@@ -1,0 +1,134 @@
+import numpy as np
+import pytest
+import torch
+
+from policy.signals import SignalInput, TriggerState, make_signal
+from policy.signals.base import CalibrationData, SignalError, StepSet
+from policy.signals.stall import StallConfig, gripper_open, policy_motion
+from tests.helpers import tiny_policy
+
+OPEN, CLOSED = -1.0, 1.0
+
+
+def _action(pos, gripper=OPEN):
+    """(10,) raw action at ``pos`` pointing down, gripper command ``gripper``."""
+    return np.r_[pos, [0, 1, 0, 1, 0, 0], gripper].astype(np.float32)
+
+
+def _chunks(starts, steps, gripper=OPEN, length=2):
+    """(B, length, 10): from each start, ``length`` actions moving ``steps[b]`` (3,) per action."""
+    return torch.as_tensor(
+        np.stack(
+            [
+                np.stack([_action(np.asarray(s) + (i + 1) * np.asarray(d), gripper) for i in range(length)])
+                for s, d in zip(starts, steps, strict=True)
+            ]
+        )
+    )
+
+
+def test_motion_is_metres_per_executed_step_to_where_the_chunk_goes():
+    current = torch.as_tensor(np.stack([_action([0, 0, 1]), _action([0.1, 0, 1])]))
+    chunk = _chunks([[0, 0, 1], [0.1, 0, 1]], [[0.003, 0.004, 0], [0, 0, -0.01]])
+    np.testing.assert_allclose(policy_motion(chunk, current, 1).numpy(), [0.005, 0.01], rtol=1e-6)
+    # two executed steps reach twice as far: the same per-step motion
+    np.testing.assert_allclose(policy_motion(chunk, current, 2).numpy(), [0.005, 0.01], rtol=1e-6)
+    closing = _chunks([[0, 0, 1]], [[0, 0, 0]], gripper=CLOSED)
+    held = torch.as_tensor(_action([0, 0, 1], CLOSED))[None]
+    assert gripper_open(chunk, current).tolist() == [True, True]
+    assert gripper_open(closing, current[:1]).tolist() == [False]  # the policy closes: a grasp holds still
+    assert gripper_open(chunk[:1], held).tolist() == [False]  # closed now
+
+
+def _signal(**calibration):
+    signal = make_signal("stall", tiny_policy(), StallConfig(patience=3))
+    signal.calibration = {"threshold": 0.5, "stride": 0.01, **calibration}
+    return signal
+
+
+def _step(signal, motion, gripper=OPEN, ids=(0,)):
+    """Scores robots ``ids`` whose policy moves ``motion`` (m) this step."""
+    b = len(ids)
+    current = np.stack([_action([0, 0, 1], OPEN)] * b)
+    chunk = _chunks([[0, 0, 1]] * b, [[motion, 0, 0]] * b, gripper=gripper, length=1)
+    batch = SignalInput(torch.zeros(b, 1, 26), torch.as_tensor(current), np.asarray(ids), action=chunk)
+    scores = signal.score(batch)
+    return scores, signal.wants_help(scores, TriggerState.autonomous(ids))
+
+
+def test_stillness_is_the_missing_share_of_the_usual_stride():
+    signal = _signal()
+    for motion, want in [(0.0, 1.0), (0.002, 0.8), (0.01, 0.0), (0.03, 0.0)]:
+        scores, _ = _step(signal, motion)
+        assert scores.value[0] == pytest.approx(want, abs=1e-6)
+        assert scores.parts["motion"][0] == pytest.approx(motion, abs=1e-7)
+    scores, _ = _step(signal, 0.0, gripper=CLOSED)
+    assert scores.value[0] == 0.0  # closing the gripper is not a stall
+
+
+def test_asks_after_patience_still_steps_in_a_row_per_robot():
+    signal = _signal()
+    asks = [_step(signal, 0.001)[1][0] for _ in range(3)]
+    assert asks == [False, False, True]
+    assert not _step(signal, 0.02)[1][0]  # moving again: the count restarts
+    assert [_step(signal, 0.001)[1][0] for _ in range(3)] == [False, False, True]
+    _, wants = _step(signal, 0.001, ids=(0, 1))  # robot 1 only starts counting now
+    assert wants.tolist() == [True, False]
+    signal.reset([0])
+    assert not _step(signal, 0.001)[1][0]
+
+
+def _val(positions_per_episode, gripper):
+    obs, current, episode, t = [], [], [], []
+    for e, positions in enumerate(positions_per_episode):
+        for i, p in enumerate(positions):
+            obs.append(np.zeros((1, 26), np.float32))
+            current.append(_action(p, gripper))
+            episode.append(e)
+            t.append(i)
+    m = len(obs)
+    return StepSet(
+        np.stack(obs),
+        np.stack(current)[:, None],
+        np.stack(current),
+        np.asarray(episode),
+        np.asarray(t),
+        np.full(m, 3),
+        np.ones(m, bool),
+        ["a", "b"],
+    )
+
+
+def test_calibration_takes_the_policys_median_open_gripper_stride(monkeypatch):
+    signal = make_signal("stall", tiny_policy(), StallConfig(quantile=0.5, calibration_batch=3))
+    motions = torch.tensor([0.0, 0.01, 0.02, 0.03, 0.005, 0.015], dtype=torch.float64)
+    calls = []
+
+    def sample_chunks(obs, k):  # the policy's next action: `motions[i]` along x from each step's pose
+        rows = torch.arange(len(calls) * 3, len(calls) * 3 + len(obs))
+        calls.append(len(obs))
+        current = torch.as_tensor(np.stack([_action([0, 0, 1])] * len(obs)))
+        chunk = current[:, None].clone()
+        chunk[:, 0, 0] += motions[rows].float()
+        return chunk[:, None]
+
+    monkeypatch.setattr(signal, "sample_chunks", sample_chunks)
+    data = CalibrationData(train=_val([[[0, 0, 1]] * 6], OPEN), val=_val([[[0, 0, 1]] * 6], OPEN))
+    rec = signal.calibrate(data)
+    assert calls == [3, 3]
+    assert rec["stride"] == pytest.approx(0.0125, rel=1e-5)  # median of the six motions
+    still = np.clip(1 - motions.numpy() / 0.0125, 0, 1)
+    assert rec["threshold"] == pytest.approx(float(np.quantile(still, 0.5)), rel=1e-5)
+    assert rec["samples"] == 6
+    closed = make_signal("stall", tiny_policy())
+    monkeypatch.setattr(closed, "sample_chunks", sample_chunks)
+    calls.clear()
+    with pytest.raises(SignalError, match="no open-gripper steps"):
+        closed.calibrate(CalibrationData(train=_val([[[0, 0, 1]] * 3], CLOSED), val=_val([[[0, 0, 1]] * 3], CLOSED)))
+
+
+def test_config_is_validated():
+    with pytest.raises(ValueError, match="patience"):
+        StallConfig(patience=0)
+    with pytest.raises(ValueError, match="quantile"):
+        StallConfig(quantile=1.0)

@@ -1,0 +1,53 @@
+"""``hitl operator-bot --hand-back-when-held`` against a real service on 127.0.0.1."""
+
+import httpx
+import numpy as np
+
+from server.auth import create_token
+from server.db import make_engine, migrate, session_factory
+from server.operator_bot import OperatorBot
+from server.settings import RobotGroup, Settings
+from storage.segments import read_segment
+from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
+
+OBJECT_Z = 13  # lift observation: eef_pos 3, eef_rot6d 6, gripper_qpos 2, then object_pos
+
+
+def test_the_bot_hands_back_once_the_object_is_held(tmp_path):
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)  # the robot asks at once
+    settings = Settings(
+        data_dir=tmp_path / "var",
+        port=free_port(),
+        robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
+        trigger_mode="continuous",  # only the operator hands back
+        cooldown_steps=100_000,  # and the robot does not ask again this episode
+        control_hz=40,
+    )
+    migrate(settings.db_url)
+    token = create_token(session_factory(make_engine(settings.db_url)), "bot", "operator")
+    with Service(settings) as svc:
+        api = svc.url + "/api/v1"
+        viewer = {"Authorization": f"Bearer {token}"}
+        wait_for(lambda: httpx.get(api + "/robots/0", headers=viewer).json()["mode"] == "waiting")
+        episode = httpx.get(api + "/robots/0", headers=viewer).json()["episode_id"]
+        bot = OperatorBot(svc.url, token, hands_back_when_held=True)
+        try:
+            bot.run(max_takeovers=1)
+        finally:
+            bot.close()
+        assert bot.takeovers == 1 and bot.commands > 10
+        robot = httpx.get(api + "/robots/0", headers=viewer).json()
+        # handed back mid-episode (an operator who drives on lifts the cube to success: a new episode)
+        assert robot["mode"] == "autonomous" and robot["episode_id"] == episode
+        seg = wait_for(
+            lambda: [s for s in httpx.get(api + "/segments", headers=viewer).json() if s["status"] == "closed"]
+        )
+        path = tmp_path / "segment.mcap"
+        path.write_bytes(httpx.get(f"{api}/segments/{seg[0]['id']}/mcap", headers=viewer).content)
+        segment = read_segment(path)
+        obs, _ = segment.labels()
+    assert len(segment.steps) == bot.commands
+    # it gave the robot back holding the cube: gripper closed on the last steps, the cube on its way up
+    assert segment.steps[-1]["command"]["gripper"] > 0
+    assert 0.004 < obs[-1, OBJECT_Z] - obs[0, OBJECT_Z] < 0.02
+    assert np.isfinite(obs).all()
