@@ -108,8 +108,8 @@ console-docs: install
 	$(BIN)/hitl bench console --out docs/bench-console-chromium.json --quiet || true
 
 # The object-frame lift policy (docs/policy.md, "The object frame") and its fine-tuning points (docs/benchmarks.md,
-# "finetune-object-frame"). It trains on the same 200 demonstrations as runs/lift-cube: seeds 0-199 of
-# data/demos/lift-cube-dart, linked into their own folder (signals-docs adds 200 more). About 30 min on 2 cores.
+# "finetune-object-frame", "finetune-stall"). It trains on the same 200 demonstrations as runs/lift-cube: seeds 0-199
+# of data/demos/lift-cube-dart, linked into their own folder (signals-docs adds 200 more). About 1 h on 2 cores.
 frame-docs: install
 	mkdir -p data/demos/lift-cube-dart-200
 	for i in $$(seq -f "%06g" 0 199); do ln -sf ../lift-cube-dart/lift-cube_seed$$i.mcap data/demos/lift-cube-dart-200/ || exit 1; done
@@ -119,6 +119,17 @@ frame-docs: install
 	$(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:spread full-trajectory expert:grasp \
 		--counts 20 50 100 --cache runs/bench-finetune-obj --section finetune-object-frame --report docs/benchmarks.md \
 		--figures docs/img --json --quiet --threads 2 > docs/bench-finetune-object-frame.json
+	$(BIN)/hitl train-signal --policy runs/lift-cube-object --signal stall --data data/demos/lift-cube-dart-200 --quiet
+	for t in lift-cube lift-nut lift-hammer lift-hook; do $(BIN)/hitl assist --policy runs/lift-cube-object --task $$t \
+		--driver stall --shadow spread --mode continuous --hand-back-when-held --cooldown 10 --episodes 16 --seed 70000 \
+		--json --quiet > docs/assist-stall-$$t.json || exit 1; done
+	$(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:stall full-trajectory --counts 20 50 100 \
+		--hand-back operator --cache runs/bench-finetune-obj --section finetune-stall --report docs/benchmarks.md \
+		--figures docs/img --json --quiet --threads 2 > docs/bench-finetune-stall.json
+	for s in 2 3; do $(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:stall full-trajectory \
+		--counts 100 --hand-back operator --stride $$s --cache runs/bench-finetune-obj --section finetune-stall-stride-$$s \
+		--report docs/benchmarks.md --figures docs/img --json --quiet --threads 2 > docs/bench-finetune-stall-stride-$$s.json \
+		|| exit 1; done
 
 clean:
 	rm -rf $(VENV) .pytest_cache
