@@ -178,6 +178,15 @@ class Settings(BaseSettings):
     def _robots_present(self) -> Settings:
         if not self.robots:
             raise ValueError("robots: the fleet needs at least one robot group")
+        folders: dict[str, Path] = {}
+        for group in self.robots:
+            path = group.policy_dir.resolve()
+            other = folders.setdefault(path.name, path)
+            if other != path:  # registered as one lineage, whose active version would drive both groups
+                raise ValueError(
+                    f"robots: two policy folders named {path.name!r} ({other} and {path}): a policy's lineage "
+                    "is named after its folder, so they would be one lineage; rename one of the folders"
+                )
         return self
 
     @property

@@ -28,6 +28,11 @@ def test_settings_come_from_the_file_with_environment_and_flags_on_top(tmp_path,
         ("control_hz = -1", "control_hz"),
         ('signal = "vibes"', "unknown signal 'vibes'"),
         ("robots = []", "at least one robot"),
+        (
+            '[[robots]]\ntask = "lift-cube"\npolicy = "a/lift-cube"\n'
+            '[[robots]]\ntask = "lift-nut"\npolicy = "b/lift-cube"',
+            "two policy folders named 'lift-cube'",
+        ),
     ],
 )
 def test_bad_config_files_get_errors_that_name_the_problem(tmp_path, text, match):
@@ -35,6 +40,11 @@ def test_bad_config_files_get_errors_that_name_the_problem(tmp_path, text, match
     config.write_text(text)
     with pytest.raises(ValueError, match=match):
         Settings.load(config)
+
+
+def test_groups_may_share_one_policy_folder():
+    same = Settings(robots=[{"task": "lift-cube", "count": 2}, {"task": "lift-nut"}, {"task": "open-drawer"}])
+    assert same.robots[0].policy_dir == same.robots[1].policy_dir  # the bundled lift policy, one lineage
 
 
 def test_the_cli_reports_a_bad_config_without_a_traceback(tmp_path, capsys):
