@@ -3,8 +3,8 @@ with the gripper open, for ``patience`` steps in a row.
 
 Why (docs/signals.md, "stall"; docs/benchmarks.md, "Asking when the policy is stuck"): on an object it
 has never seen, the object-frame lift policy approaches well (the approach depends on where the
-object is, which it knows) and then parks at its approach height over the object, open, because it
-does not know where this shape is grasped. That is the state that needs help. The uncertainty
+object is, which it knows) and then stops above the object, open, because it does not know where
+this shape is grasped. That is the state that needs help. The uncertainty
 signals ask at the first step instead: the new object's extent is outside everything the policy was
 trained on, so every step of the episode looks uncertain, and the operator ends up driving whole
 episodes.
@@ -18,7 +18,7 @@ A step's *stillness* is how much less than its usual stride the policy moves:
 with ``stride`` the median motion of the policy at the open-gripper steps of the held-out
 demonstrations, and stillness 0 while the gripper is closed or the policy is closing it (a grasp
 holds still on purpose). The threshold is the ``quantile`` of stillness over those steps (the
-policy moves slower than that on 5% of them: the ends of the demonstrations' descents); the robot
+policy moves slower than that on 5% of them); the robot
 asks after ``patience`` consecutive steps over it. No observation term: the signal does not care
 whether the scene is new, only whether the policy is stuck in it.
 """
