@@ -28,6 +28,7 @@ from policy.mixing import MixedSampler
 from policy.train import TrainConfig, TrainState, train_policy
 from storage import keys
 from storage.dataset import DatasetConfig, load_dataset
+from storage.takeovers import TakeoverSelection
 
 
 @dataclass(frozen=True)
@@ -36,7 +37,10 @@ class FinetuneConfig:
     sample (``passes * N / (ratio * batch_size)``) clipped to [min_steps, max_steps], or ``steps`` when
     given; tolerance: how much training-task success may drop; min_gain: how much the target tasks'
     mean success must rise (strictly more than this); widen_obs_range: widen the child's observation
-    normalizer to cover the takeover observations (False: keep the parent's, as before)."""
+    normalizer to cover the takeover observations (False: keep the parent's, as before);
+    successful_only, takeover_tail: which takeovers and steps to learn from
+    (``storage.takeovers.TakeoverSelection``: only takeovers of successful episodes; of each, only its
+    last ``takeover_tail`` steps)."""
 
     ratio: float = 0.5
     batch_size: int = 64
@@ -54,8 +58,11 @@ class FinetuneConfig:
     tolerance: float = 0.05
     min_gain: float = 0.0
     widen_obs_range: bool = True
+    successful_only: bool = False
+    takeover_tail: int | None = None
 
     def __post_init__(self) -> None:
+        self.selection  # noqa: B018 - validates takeover_tail
         if not 0 < self.ratio <= 1:
             raise ValueError(f"ratio must be in (0, 1], got {self.ratio!r}")
         for name in ("batch_size", "min_steps", "max_steps", "checkpoint_every", "eval_episodes"):
@@ -89,6 +96,10 @@ class FinetuneConfig:
             seed=self.seed,
             val_every=max(steps, 1),
         )
+
+    @property
+    def selection(self) -> TakeoverSelection:
+        return TakeoverSelection(successful_only=bool(self.successful_only), tail=self.takeover_tail)
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -42,12 +42,12 @@ from policy.finetune import (
 )
 from server import lease as leases
 from server import registry
-from server.db import FinetuneJob, PolicyVersion, SegmentRecord, utcnow
+from server.db import EpisodeRecord, FinetuneJob, PolicyVersion, SegmentRecord, utcnow
 from server.errors import ServiceError
 from server.recording import resolve
 from storage import keys
 from storage.dataset import DatasetConfig, load_dataset
-from storage.takeovers import load_takeovers
+from storage.takeovers import TakeoverSelection, load_takeovers
 
 log = logging.getLogger("hitl.finetune")
 
@@ -158,12 +158,37 @@ class FinetuneRunner:
             used = {
                 i
                 for v in registry.versions(self.sessions, name)
-                for key in ("segment_ids", "skipped_segment_ids")
+                for key in ("segment_ids", "skipped_segment_ids", "excluded_segment_ids")
                 for i in (v.manifest or {}).get(key, [])
             }
-            if any(s.id not in used for s in segments):
+            # a takeover whose episode is still running is news once it has ended, when the outcome counts
+            waiting = {s.id for s in self._select(segments, request.config.selection)[2]}
+            if any(s.id not in used and s.id not in waiting for s in segments):
                 plans.append(Plan(name, active, segments))
         return plans
+
+    def _select(
+        self, segments: list[SegmentRecord], selection: TakeoverSelection
+    ) -> tuple[list[SegmentRecord], dict[int, str], list[SegmentRecord]]:
+        """(kept, left out {segment id: why}, waiting: those whose episode has not ended) under
+        ``selection``; with ``successful_only``, by the outcome of each segment's episode."""
+        if not selection.successful_only:
+            return list(segments), {}, []
+        ids = {s.episode_id for s in segments if s.episode_id is not None}
+        with self.sessions() as db:
+            rows = db.execute(select(EpisodeRecord.id, EpisodeRecord.outcome).where(EpisodeRecord.id.in_(ids)))
+            outcomes = {i: outcome for i, outcome in rows}
+        kept, left_out, waiting = [], {}, []
+        for seg in segments:
+            if seg.episode_id not in outcomes:
+                left_out[seg.id] = "no episode recorded for it (successful episodes only)"
+            elif outcomes[seg.episode_id] is None:
+                waiting.append(seg)
+            elif (why := selection.why_excluded(outcomes[seg.episode_id])) is not None:
+                left_out[seg.id] = why
+            else:
+                kept.append(seg)
+        return kept, left_out, waiting
 
     def _segments(self, lineage: str, since: timedelta | None) -> list[SegmentRecord]:
         ids = registry.lineage_ids(self.sessions, lineage)
@@ -307,23 +332,36 @@ class FinetuneRunner:
             tasks = sorted({m.get("task") for m in ds.meta if m.get("task")})
             manifest_new = {"episodes_folder": str(plan.episodes), "episodes": ds.names, "excluded": ds.excluded}
             counts = {"episodes": ds.num_episodes, "samples": int(len(fresh[keys.OBS]))}
-            skipped = {}
+            skipped, excluded = {}, {}
         else:
-            paths = [resolve(self.data_dir, s.path) for s in plan.segments]
-            takeovers = load_takeovers(paths, pc.obs_dim)
+            selected, left_out, waiting = self._select(plan.segments, cfg.selection)
+            excluded = {Path(s.path).name: left_out[s.id] for s in plan.segments if s.id in left_out}
+            for name, why in excluded.items():
+                self.report(f"job {job_id}: left out segment {name}: {why}")
+            for seg in waiting:
+                self.report(f"job {job_id}: segment {Path(seg.path).name} waits for its episode to end")
+            takeovers = load_takeovers([resolve(self.data_dir, s.path) for s in selected], pc.obs_dim, cfg.selection)
             for name, why in takeovers.skipped.items():
                 self.report(f"job {job_id}: skipped segment {name}: {why}")
             fresh = takeovers.arrays(pc.obs_horizon, pc.action_horizon)
             used = set(takeovers.used)
-            segs = [s for s in plan.segments if Path(s.path).name in used]
+            segs = [s for s in selected if Path(s.path).name in used]
             tasks = sorted({s.task for s in segs})
             manifest_new = {
                 "segment_ids": [s.id for s in segs],
                 "segments": [s.path for s in segs],
                 "skipped": takeovers.skipped,
-                "skipped_segment_ids": [s.id for s in plan.segments if Path(s.path).name in takeovers.skipped],
+                "skipped_segment_ids": [s.id for s in selected if Path(s.path).name in takeovers.skipped],
+                "excluded": excluded,
+                "excluded_segment_ids": sorted(left_out),
             }
-            counts = {"segments": len(segs), "samples": len(takeovers), "skipped": len(takeovers.skipped)}
+            counts = {
+                "segments": len(segs),
+                "samples": len(takeovers),
+                "skipped": len(takeovers.skipped),
+                "excluded": len(excluded),
+                "waiting": len(waiting),
+            }
             skipped = takeovers.skipped
         self._update(
             job_id,
@@ -331,6 +369,7 @@ class FinetuneRunner:
                 **self._data(job_id),
                 "counts": counts,
                 "skipped": skipped,
+                "excluded": excluded,
                 "tasks": tasks,
                 "pretraining": str(pretrain_folder),
             },
@@ -338,8 +377,8 @@ class FinetuneRunner:
         )
         if not len(fresh[keys.OBS]):
             raise FinetuneDataError(
-                f"no usable sample: {len(skipped)} segment(s) skipped ("
-                + "; ".join(f"{k}: {v}" for k, v in list(skipped.items())[:5])
+                f"no usable sample: {len(skipped)} segment(s) skipped, {len(excluded)} left out by the selection ("
+                + "; ".join(f"{k}: {v}" for k, v in list((skipped | excluded).items())[:5])
                 + ")"
             )
         pre_train, _, pre_names = pretraining_split(parent, info, pretrain_folder)

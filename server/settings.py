@@ -62,6 +62,10 @@ class FinetuneSettings(BaseModel):
     widen_obs_range: bool = Field(
         True, description="widen the new version's observation range to cover its takeover data (false: the parent's)"
     )
+    successful_only: bool = Field(False, description="learn only from takeovers in episodes that ended in success")
+    takeover_tail: int | None = Field(
+        None, ge=1, description="learn from the last N steps of each takeover, those that led to the hand-back"
+    )
     eval_tasks: dict[str, list[str]] = Field(
         default_factory=dict,
         description="lineage -> the target tasks the gate compares on (default: the tasks its takeovers came from)",

@@ -10,6 +10,11 @@ with the last action.
 A segment that cannot be used (unreadable, truncated, empty, wrong dimensions, non-finite values) is
 skipped, and ``TakeoverSet.skipped`` names it with the reason: the caller reports it, nothing fails
 silently.
+
+``TakeoverSelection`` says which takeovers and steps to learn from: only takeovers whose episode ended
+in success (``successful_only``: the operator's help led somewhere; the caller, which knows the
+episodes' outcomes, leaves the others out), and of each only its last ``tail`` steps, the ones that led
+to the hand-back (``load_takeovers`` cuts them).
 """
 
 from __future__ import annotations
@@ -24,6 +29,35 @@ from storage.dataset import DatasetConfig, DemoDataset
 from storage.segments import SegmentReadError, read_segment
 
 ACTION_DIM = 10
+SUCCESS = "success"  # the episode outcome a successful_only selection keeps (server.db.EpisodeRecord.outcome)
+
+
+@dataclass(frozen=True)
+class TakeoverSelection:
+    """Which takeovers and steps to learn from. successful_only: only takeovers whose episode ended in
+    success (not in a timeout, a fault, a reset, a shutdown); tail: of each takeover only its last
+    ``tail`` steps (None: all of them)."""
+
+    successful_only: bool = False
+    tail: int | None = None
+
+    def __post_init__(self) -> None:
+        t = self.tail
+        if t is not None and (not isinstance(t, int) or isinstance(t, bool) or t < 1):
+            raise ValueError(f"takeover tail must be an integer >= 1 or None, got {t!r}")
+
+    def why_excluded(self, outcome: str | None) -> str | None:
+        """None when a takeover whose episode ended with ``outcome`` (None: not ended) is kept; otherwise
+        why the selection leaves it out."""
+        if not self.successful_only or outcome == SUCCESS:
+            return None
+        if outcome is None:
+            return "its episode has not ended (successful episodes only)"
+        return f"its episode ended in {outcome} (successful episodes only)"
+
+    def steps(self, n: int) -> slice:
+        """The steps kept of an n-step takeover."""
+        return slice(max(0, n - self.tail), n) if self.tail is not None else slice(0, n)
 
 
 @dataclass
@@ -85,8 +119,10 @@ def _steps(path: Path, obs_dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return obs, act, pose
 
 
-def load_takeovers(paths: list[Path], obs_dim: int) -> TakeoverSet:
-    """Reads every segment in ``paths`` (in order); unusable ones are listed in ``skipped``."""
+def load_takeovers(paths: list[Path], obs_dim: int, selection: TakeoverSelection | None = None) -> TakeoverSet:
+    """Reads every segment in ``paths`` (in order); unusable ones are listed in ``skipped``. Of each
+    usable one the steps ``selection`` keeps (its tail; which segments to pass is the caller's)."""
+    selection = selection or TakeoverSelection()
     obs, act, pose, ends, used, skipped = [], [], [], [], [], {}
     for path in paths:
         path = Path(path)
@@ -98,6 +134,8 @@ def load_takeovers(paths: list[Path], obs_dim: int) -> TakeoverSet:
         except Exception as exc:  # noqa: BLE001 - any other failure of one file is that file's problem
             skipped[path.name] = f"unreadable ({type(exc).__name__}: {exc})"
             continue
+        keep = selection.steps(len(o))
+        o, a, p = o[keep], a[keep], p[keep]
         obs.append(o)
         act.append(a)
         pose.append(p)

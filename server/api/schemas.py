@@ -279,7 +279,10 @@ class FinetuneJobOut(BaseModel):
     parent_id: int | None
     version_id: int | None = Field(None, description="the version it produced")
     since: datetime | None
-    data: dict = Field(default_factory=dict, description="counts, tasks, skipped segments with their reason")
+    data: dict = Field(
+        default_factory=dict,
+        description="counts, tasks, skipped segments and the ones the selection left out, with their reason",
+    )
     evaluation: dict = Field(default_factory=dict, description="parent and candidate success per task")
     gate: dict = Field(default_factory=dict, description="the promotion gate's decision and its evidence")
     error: str | None

@@ -4,6 +4,7 @@ evaluation in the real simulator through the controller."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -13,7 +14,15 @@ from sqlalchemy import select
 from policy.checkpoint import load_calibration, read_info
 from policy.finetune import FinetuneConfig
 from server import registry
-from server.db import FinetuneJob, PolicyVersion, SegmentRecord, make_engine, migrate, session_factory
+from server.db import (
+    EpisodeRecord,
+    FinetuneJob,
+    PolicyVersion,
+    SegmentRecord,
+    make_engine,
+    migrate,
+    session_factory,
+)
 from server.errors import ServiceError
 from server.finetune_job import FinetuneRunner, JobBusy, JobRequest, parse_since
 from server.lease import FINETUNE_LEASE, acquire, release
@@ -22,6 +31,23 @@ from tests.helpers import finetunable_policy_folder, write_segment
 
 TASK = "lift-cube"
 TINY = FinetuneConfig(steps=12, batch_size=8, checkpoint_every=5, eval_episodes=1, min_steps=1)
+
+
+def _closed_segment(name: str, policy_id: int, ended_at: datetime, **kw) -> SegmentRecord:
+    """The row of segments/<name>.mcap: a 5-step takeover the operator handed back."""
+    return SegmentRecord(
+        robot_id=0,
+        task="lift-nut",
+        policy_id=policy_id,
+        operator="op",
+        reason="test",
+        status="closed",
+        ended_by="hand-back",
+        steps=5,
+        path=f"segments/{name}.mcap",
+        ended_at=ended_at,
+        **kw,
+    )
 
 
 @pytest.fixture
@@ -43,20 +69,7 @@ def store(tmp_path):
     now = datetime.now(UTC)
     with sessions() as s:
         for name in ("good-1", "broken", "good-2"):
-            s.add(
-                SegmentRecord(
-                    robot_id=0,
-                    task="lift-nut",
-                    policy_id=row.id,
-                    operator="op",
-                    reason="test",
-                    status="closed",
-                    ended_by="hand-back",
-                    steps=5,
-                    path=f"segments/{name}.mcap",
-                    ended_at=now,
-                )
-            )
+            s.add(_closed_segment(name, row.id, now))
         s.add(
             SegmentRecord(
                 robot_id=1,
@@ -190,6 +203,49 @@ def test_with_no_policy_only_lineages_with_new_segments_run(store):
     runner.run(JobRequest(config=TINY))
     assert runner.plan(JobRequest()) == []  # every segment is in a version's manifest now
     assert runner.run(JobRequest(config=TINY)) == []
+
+
+def test_a_job_on_successful_episodes_leaves_out_the_rest_and_waits_for_running_ones(store):
+    sessions, data_dir, parent = store
+    obs_dim = make_task(TASK).obs_spec.dim
+    write_segment(data_dir / "segments" / "timed-out.mcap", obs_dim, seed=3)
+    write_segment(data_dir / "segments" / "running.mcap", obs_dim, seed=4)
+    with sessions() as s:
+        episodes = {
+            o: EpisodeRecord(robot_id=0, task="lift-nut", seed=1, outcome=o) for o in ("success", "timeout", None)
+        }
+        s.add_all(episodes.values())
+        s.flush()
+        for seg in s.scalars(select(SegmentRecord)):  # the fixture's takeovers were in a successful episode
+            seg.episode_id = episodes["success"].id
+        for name, outcome in (("timed-out", "timeout"), ("running", None)):
+            s.add(_closed_segment(name, parent.id, datetime.now(UTC), episode_id=episodes[outcome].id))
+        s.commit()
+        ids = {Path(seg.path).stem: seg.id for seg in s.scalars(select(SegmentRecord))}
+        running_episode = episodes[None].id
+    lines = []
+    cfg = replace(TINY, successful_only=True, takeover_tail=3)
+    runner = FinetuneRunner(sessions, data_dir, progress=False, report=lines.append)
+    [summary] = runner.run(JobRequest(policy="lift-cube", config=cfg))
+    assert summary["status"] == "succeeded", summary
+    with sessions() as s:
+        job = s.get(FinetuneJob, summary["job"])
+    # two good 5-step takeovers of the successful episode, their last 3 steps each; the corrupt one skipped
+    assert job.data["counts"] == {"segments": 2, "samples": 6, "skipped": 1, "excluded": 1, "waiting": 1}
+    assert job.data["excluded"] == {"timed-out.mcap": "its episode ended in timeout (successful episodes only)"}
+    assert any("running.mcap waits for its episode to end" in line for line in lines)
+    child = registry.resolve(sessions, summary["version"])
+    assert child.manifest["segment_ids"] == [ids["good-1"], ids["good-2"]]
+    assert child.manifest["excluded_segment_ids"] == [ids["timed-out"]]
+    config = read_info(child.path)["finetune"]["config"]
+    assert config["successful_only"] is True and config["takeover_tail"] == 3
+    # the left-out takeover is not news the next night; the running one is, once its episode has ended
+    nightly = JobRequest(config=cfg)
+    assert runner.plan(nightly) == []
+    with sessions() as s:
+        s.get(EpisodeRecord, running_episode).outcome = "success"
+        s.commit()
+    assert [p.lineage for p in runner.plan(nightly)] == ["lift-cube"]
 
 
 def test_since_parses_durations():

@@ -105,7 +105,7 @@ def test_an_admin_starts_a_job_and_the_fleet_follows_a_promotion(service):
         timeout=300,
     )
     assert done["status"] == "succeeded", done
-    assert done["data"]["counts"] == {"segments": 1, "samples": 5, "skipped": 0}
+    assert done["data"]["counts"] == {"segments": 1, "samples": 5, "skipped": 0, "excluded": 0, "waiting": 0}
     assert set(done["evaluation"]["candidate"]["tasks"]) == {"lift-cube"} and "reason" in done["gate"]
     versions = {v["ref"]: v for v in c.get("/policies", headers=_h(service)).json()}
     new = versions["lift-cube@2"]

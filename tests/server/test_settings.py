@@ -28,6 +28,7 @@ def test_settings_come_from_the_file_with_environment_and_flags_on_top(tmp_path,
         ("control_hz = -1", "control_hz"),
         ('signal = "vibes"', "unknown signal 'vibes'"),
         ("robots = []", "at least one robot"),
+        ("[finetune]\ntakeover_tail = 0", "takeover_tail"),
         (
             '[[robots]]\ntask = "lift-cube"\npolicy = "a/lift-cube"\n'
             '[[robots]]\ntask = "lift-nut"\npolicy = "b/lift-cube"',
@@ -53,6 +54,9 @@ def test_the_cli_reports_a_bad_config_without_a_traceback(tmp_path, capsys):
     assert main(["serve", "--config", str(config)]) == 2
     assert "budget_steps" in capsys.readouterr().err
     assert main(["serve", "--config", str(tmp_path / "missing.toml")]) == 2
+    capsys.readouterr()
+    assert main(["finetune", "--data-dir", str(tmp_path / "var"), "--takeover-tail", "0", "--quiet"]) == 2
+    assert "takeover tail must be an integer >= 1 or None, got 0" in capsys.readouterr().err
 
 
 def test_tokens_are_stored_hashed_and_can_be_revoked(tmp_path):

@@ -1,0 +1,44 @@
+"""Which takeovers and steps fine-tuning learns from (``TakeoverSelection``), read from real segment files."""
+
+import numpy as np
+import pytest
+
+from policy.finetune import FinetuneConfig
+from storage.segments import SegmentWriter
+from storage.takeovers import TakeoverSelection, load_takeovers
+
+
+def _segment(path, steps: int, first: int = 0):
+    """A closed segment whose observations are its step numbers from ``first``."""
+    w = SegmentWriter(path, {"robot": 0})
+    for t in range(first, first + steps):
+        act = np.r_[[0.0, 0.0, 0.9], [0, 1, 0, 1, 0, 0], [-1.0]]
+        w.write_step(np.full(26, t, np.float32), {}, act, act * 0, act[:3], [0, 0, 0, 1.0], None)
+    w.close("closed", "hand-back")
+    return path
+
+
+def test_the_reader_keeps_the_last_steps_of_each_takeover(tmp_path):
+    paths = [_segment(tmp_path / "a.mcap", 5), _segment(tmp_path / "b.mcap", 2, first=200)]
+    assert len(load_takeovers(paths, obs_dim=26)) == 7
+    out = load_takeovers(paths, obs_dim=26, selection=TakeoverSelection(tail=3))
+    # the last 3 steps of the 5-step takeover (the ones that led to its end), all of the 2-step one
+    assert out.obs[:, 0].tolist() == [2, 3, 4, 200, 201] and out.episode_ends.tolist() == [3, 5]
+    assert out.used == ["a.mcap", "b.mcap"]
+
+
+def test_successful_only_keeps_takeovers_of_episodes_that_succeeded():
+    keep = TakeoverSelection(successful_only=True)
+    assert keep.why_excluded("success") is None
+    assert keep.why_excluded("timeout") == "its episode ended in timeout (successful episodes only)"
+    assert "has not ended" in keep.why_excluded(None)
+    assert TakeoverSelection().why_excluded("faulted") is None  # by default every takeover is used
+    assert TakeoverSelection(tail=4).steps(10) == slice(6, 10) and TakeoverSelection(tail=4).steps(3) == slice(0, 3)
+
+
+@pytest.mark.parametrize("tail", [0, -2, 2.5, True, "3"])
+def test_a_bad_tail_is_refused_with_its_value(tail):
+    with pytest.raises(ValueError, match="takeover tail must be an integer >= 1"):
+        TakeoverSelection(tail=tail)
+    with pytest.raises(ValueError, match="takeover tail must be an integer >= 1"):
+        FinetuneConfig(takeover_tail=tail)
