@@ -200,6 +200,10 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
     finetune = {k: getattr(args, k) for k in ("ratio", "steps", "lr") if getattr(args, k) is not None}
     if args.keep_obs_range:
         finetune["widen_obs_range"] = False
+    if args.successful_only:
+        finetune["successful_only"] = True
+    if args.takeover_tail is not None:
+        finetune["takeover_tail"] = args.takeover_tail
     if finetune:
         given["finetune"] = FinetuneConfig(**finetune)
     if args.return_after is not None:
@@ -208,6 +212,8 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         given["hand_back"] = args.hand_back
     if args.stride is not None:
         given["stride"] = args.stride
+    if args.repeats is not None:
+        given["repeats"] = args.repeats
     cfg = FinetuneBenchConfig.quick(**given) if args.quick else FinetuneBenchConfig(**given)  # validated first
     torch.set_num_threads(args.threads)
     result = run_bench(cfg, args.cache, progress=not args.quiet)
@@ -265,6 +271,24 @@ def register_finetune(bench: argparse._SubParsersAction) -> None:
         type=int,
         default=None,
         help="fine-tune on one step in N of each takeover or demonstration (default 1)",
+    )
+    q.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="each point N times: other seeded draws of the samples and fine-tuning seeds (default 1)",
+    )
+    q.add_argument(
+        "--successful-only",
+        action="store_true",
+        help="fine-tune only on takeovers in episodes that succeeded (as hitl finetune --successful-only)",
+    )
+    q.add_argument(
+        "--takeover-tail",
+        type=int,
+        default=None,
+        metavar="N",
+        help="fine-tune on the last N steps of each takeover (as hitl finetune --takeover-tail)",
     )
     q.add_argument("--section", default=None, help="the report section's name (default finetune / finetune-quick)")
     q.add_argument("--cache", default="runs/bench-finetune")

@@ -12,10 +12,13 @@ From one pretrained lift policy: collect fine-tuning data on the unseen objects 
   held. No signal collects it; it tells what perfect timing would be worth;
 
 then, for each source and each sample count K, fine-tune a copy of the policy on the first K samples
-(spread evenly over the unseen tasks) with the job's recipe (``policy.finetune``: 50/50 batches with
-the pretraining data, steps growing with K) and evaluate it autonomously through the controller on
-seeded episodes of the training object and of each unseen object. Every point is independent and
-starts from the same pretrained weights; results are cached per point under ``--cache``.
+(spread evenly over the unseen tasks; of takeovers, the steps the recipe's ``TakeoverSelection`` keeps:
+with ``successful_only`` only takeovers in episodes that succeeded, with ``takeover_tail`` only the last
+steps of each, as ``hitl finetune`` selects them from segment files) with the job's recipe
+(``policy.finetune``: 50/50 batches with the pretraining data, steps growing with K) and evaluate it
+autonomously through the controller on seeded episodes of the training object and of each unseen
+object. Every point is independent and starts from the same pretrained weights; results are cached
+per point under ``--cache``.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +36,7 @@ from policy.assisted import AssistConfig, run_assisted
 from policy.checkpoint import load_policy, read_info
 from policy.finetune import FinetuneConfig, TaskResult, evaluate_episodes, finetune_policy, pretraining_split
 from storage import keys
-from storage.takeovers import TakeoverSet
+from storage.takeovers import SUCCESS, TakeoverSelection, TakeoverSet
 
 FULL = "full-trajectory"
 GRASP = "expert:grasp"
@@ -63,6 +66,9 @@ class FinetuneBenchConfig:
     # fine-tune on every stride-th step of each run of samples (each source alike); a policy with
     # observation and action horizons of 1 only (a subsampled run has no chunks of consecutive actions)
     stride: int = 1
+    # each point this many times: repeat r > 0 draws its samples from the runs in another seeded order
+    # and fine-tunes with seed + r (the spread says how much one point can be trusted)
+    repeats: int = 1
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
 
     def __post_init__(self) -> None:
@@ -78,8 +84,10 @@ class FinetuneBenchConfig:
                     f"unknown source {source!r}: {FULL}, {GRASP} or takeover:SIGNAL with SIGNAL one of "
                     + ", ".join(SIGNALS)
                 )
-        if not (isinstance(self.stride, int) and not isinstance(self.stride, bool) and self.stride >= 1):
-            raise ValueError(f"stride must be an integer >= 1, got {self.stride!r}")
+        for name in ("stride", "repeats"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
         if not self.counts or any(not (isinstance(k, int) and k >= 1) for k in self.counts):
             raise ValueError(f"counts must be integers >= 1, got {self.counts!r}")
 
@@ -94,15 +102,37 @@ class FinetuneBenchConfig:
         return d
 
     def digest(self, *parts) -> str:
-        doc = json.dumps([self.to_dict(), *parts], sort_keys=True, default=str)
+        """A cache key of this config and ``parts``. Recipe fields added later are left out at their
+        defaults, so the points computed before they existed are still found."""
+        d = self.to_dict()
+        d.pop("repeats")  # a point's repeat is one of its parts
+        d["finetune"] = {k: v for k, v in d["finetune"].items() if _LATER_DEFAULTS.get(k, ...) != v}
+        doc = json.dumps([d, *parts], sort_keys=True, default=str)
         return hashlib.sha256(doc.encode()).hexdigest()[:16]
+
+    def for_source(self, source: str | None) -> FinetuneBenchConfig:
+        """This config as it bears on ``source`` (None: on the pretrained policy): the takeover selection
+        only on takeover sources, so other points and their cache keys do not depend on it."""
+        if source is not None and source.startswith("takeover:"):
+            return self
+        return replace(self, finetune=replace(self.finetune, successful_only=False, takeover_tail=None))
+
+    def selection(self, source: str) -> TakeoverSelection:
+        """The recipe's takeover selection for a takeover source; every step of the other sources."""
+        return self.finetune.selection if source.startswith("takeover:") else TakeoverSelection()
+
+
+_LATER_DEFAULTS = {"successful_only": False, "takeover_tail": None}  # FinetuneConfig fields newer than the cache
 
 
 @dataclass
 class Samples:
-    """Per unseen task, the runs of consecutive (observation, action) pairs, in collection order."""
+    """Per unseen task, the runs of consecutive (observation, action) pairs, in collection order, and
+    per run whether its episode succeeded (a task missing from ``successful``: every run, as the
+    demonstrations' episodes do)."""
 
     runs: dict[str, list[tuple[np.ndarray, np.ndarray]]]
+    successful: dict[str, list[bool]] = field(default_factory=dict)
 
     def save(self, path: Path) -> None:
         arrays = {}
@@ -110,6 +140,8 @@ class Samples:
             arrays[f"{t}/obs"] = np.concatenate([o for o, _ in runs]) if runs else np.zeros((0, 0), np.float32)
             arrays[f"{t}/act"] = np.concatenate([a for _, a in runs]) if runs else np.zeros((0, 10), np.float32)
             arrays[f"{t}/len"] = np.array([len(o) for o, _ in runs], np.int64)
+            if t in self.successful:
+                arrays[f"{t}/successful"] = np.array(self.successful[t], bool)
         tmp = path.with_suffix(".tmp.npz")
         np.savez(tmp, **arrays)
         tmp.replace(path)
@@ -117,12 +149,40 @@ class Samples:
     @classmethod
     def load(cls, path: Path) -> Samples:
         runs: dict[str, list] = {}
+        successful: dict[str, list[bool]] = {}
         with np.load(path) as z:
             for t in dict.fromkeys(k.split("/")[0] for k in z.files):
                 ends = np.cumsum(z[f"{t}/len"])
                 starts = ends - z[f"{t}/len"]
                 runs[t] = [(z[f"{t}/obs"][a:b], z[f"{t}/act"][a:b]) for a, b in zip(starts, ends, strict=True)]
-        return cls(runs)
+                if f"{t}/successful" in z.files:
+                    successful[t] = z[f"{t}/successful"].tolist()
+        return cls(runs, successful)
+
+    def shuffled(self, seed: int) -> Samples:
+        """The same runs in a seeded random order per task (seed 0: as they are)."""
+        if seed == 0:
+            return self
+        runs, successful = {}, {}
+        for i, (task, task_runs) in enumerate(self.runs.items()):
+            order = np.random.default_rng([seed, i]).permutation(len(task_runs))
+            runs[task] = [task_runs[j] for j in order]
+            if task in self.successful:
+                successful[task] = [self.successful[task][j] for j in order]
+        return Samples(runs, successful)
+
+    def kept(self, task: str, selection: TakeoverSelection) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """(whole length, observations, actions) of each of ``task``'s runs that ``selection`` keeps,
+        cropped to its steps, in order; a run it leaves out as (whole length, None, None)."""
+        flags = self.successful.get(task) or [True] * len(self.runs[task])
+        out = []
+        for (o, a), ok in zip(self.runs[task], flags, strict=True):
+            if selection.why_excluded(SUCCESS if ok else "failure") is not None:
+                out.append((len(o), None, None))
+                continue
+            keep = selection.steps(len(o))
+            out.append((len(o), o[keep], a[keep]))
+        return out
 
     def count(self) -> dict[str, int]:
         return {t: sum(len(o) for o, _ in r) for t, r in self.runs.items()}
@@ -133,19 +193,32 @@ class Samples:
             t: float(np.mean(np.concatenate([a[:, -1] for _, a in r]) > 0)) if r else 0.0 for t, r in self.runs.items()
         }
 
-    def first(self, k: int, stride: int = 1) -> TakeoverSet:
+    def first(self, k: int, stride: int = 1, selection: TakeoverSelection | None = None) -> TakeoverSet:
+        """``draw``'s samples."""
+        return self.draw(k, stride, selection)[0]
+
+    def draw(self, k: int, stride: int = 1, selection: TakeoverSelection | None = None) -> tuple[TakeoverSet, int]:
         """The first ``k`` samples, ``k / len(tasks)`` from each task (the remainder to the first ones),
-        whole runs in order, the last one cut; with ``stride`` s, every s-th step of each run (its steps
-        0, s, 2s, ...: the runs as recorded at 1/s of the control rate)."""
+        whole runs in order, the last one cut (to its first steps; to its last ones with a ``selection``
+        tail, which keeps the steps next to the hand-back); with ``stride`` s, every s-th step of each
+        run (its steps 0, s, 2s, ...: the runs as recorded at 1/s of the control rate). Runs the
+        ``selection`` leaves out are passed over. Also returns the steps recorded in every run drawn
+        from or passed over: what the K samples cost the operator (or the expert)."""
+        selection = selection or TakeoverSelection()
         tasks = list(self.runs)
         share = [k // len(tasks) + (1 if i < k % len(tasks) else 0) for i in range(len(tasks))]
-        obs, act, ends, total = [], [], [], 0
+        obs, act, ends, total, recorded = [], [], [], 0, 0
         for task, want in zip(tasks, share, strict=True):
             left = want
-            for o, a in self.runs[task]:
+            for whole, o, a in self.kept(task, selection):
                 if left <= 0:
                     break
-                o, a = o[::stride][:left], a[::stride][:left]
+                recorded += whole
+                if o is None:
+                    continue
+                o, a = o[::stride], a[::stride]
+                cut = slice(-left, None) if selection.tail is not None else slice(0, left)
+                o, a = (o[cut], a[cut]) if len(o) > left else (o, a)
                 obs.append(o)
                 act.append(a)
                 total += len(o)
@@ -154,7 +227,8 @@ class Samples:
             if left > 0:
                 raise ValueError(f"only {want - left} samples of {task} collected, {want} wanted")
         obs_a, act_a = np.concatenate(obs), np.concatenate(act)
-        return TakeoverSet(obs_a, act_a, np.zeros((len(obs_a), 7), np.float32), np.array(ends, np.int64))
+        data = TakeoverSet(obs_a, act_a, np.zeros((len(obs_a), 7), np.float32), np.array(ends, np.int64))
+        return data, recorded
 
 
 def grasp_window(obs: np.ndarray, act: np.ndarray, window: tuple[int, int] = GRASP_WINDOW):
@@ -198,12 +272,12 @@ def _signal_digest(policy_dir: str, source: str) -> str | None:
     return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path is not None and path.is_file() else None
 
 
-def _runs_from_episodes(episodes, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+def _runs_from_episodes(episodes, seed: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[bool]]:
     """The operator's takeovers (runs of consecutive operator steps) in a seeded random order: the first
     K samples are then a draw of whole takeovers from all the episodes, wherever in them the signal asked
     (in the order a fleet records them, K samples from robots running side by side would all be their
-    episodes' first steps)."""
-    runs = []
+    episodes' first steps). Also, per takeover, whether its episode succeeded."""
+    runs, successful = [], []
     for ep in episodes:
         flags = np.asarray(ep.operator, bool)
         at = 0
@@ -212,20 +286,23 @@ def _runs_from_episodes(episodes, seed: int) -> list[tuple[np.ndarray, np.ndarra
             chunk = ep.takeover_pairs[at : at + n]
             at += n
             runs.append((np.stack([p[0] for p in chunk]), np.stack([p[1] for p in chunk])))
+            successful.append(bool(ep.success))
     order = np.random.default_rng(seed).permutation(len(runs))
-    return [runs[i] for i in order]
+    return [runs[i] for i in order], [successful[i] for i in order]
 
 
 def collect(
     policy, policy_dir: str, source: str, cfg: FinetuneBenchConfig, need: int, cache: Path, progress: bool
 ) -> Samples:
-    """At least ``need`` samples per unseen task from ``source`` (or as many as ``collect_rounds`` give);
-    expert demonstrations are recorded once under ``cache``."""
+    """At least ``need`` samples per unseen task from ``source`` that the config's selection keeps (or
+    as many as ``collect_rounds`` give); expert demonstrations are recorded once under ``cache``."""
     from policy.signals import load_signal
     from sim.demos import record_demos
     from storage.dataset import DatasetConfig, load_dataset
 
     runs: dict[str, list] = {}
+    successful: dict[str, list[bool]] = {}
+    selection = cfg.selection(source)
     for ti, task in enumerate(cfg.unseen):
         got, runs[task] = 0, []
         for r in range(cfg.collect_rounds):
@@ -251,14 +328,15 @@ def collect(
                     seed=cfg.collect_seed,
                 )
                 episodes, _ = run_assisted(policy, task, seeds, signal, config=assist, progress=progress)
-                new = _runs_from_episodes(episodes, seeds[0])
+                new, flags = _runs_from_episodes(episodes, seeds[0])
+                successful[task] = successful.get(task, []) + flags
             else:  # FinetuneBenchConfig refuses any other
                 raise ValueError(f"unknown source {source!r}")
             runs[task] += new
-            got += sum(len(o) for o, _ in new)
+            got = sum(len(o) for _, o, _ in Samples(runs, successful).kept(task, selection) if o is not None)
             if got >= need:
                 break
-    return Samples(runs)
+    return Samples(runs, successful)
 
 
 def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune", progress: bool = True) -> dict:
@@ -290,15 +368,15 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
             for t, eps in runs.items()
         }
 
-    base_key = "pretrained-" + cfg.digest("pretrained", tasks, cfg.eval_episodes, cfg.eval_seed)
+    base_key = "pretrained-" + cfg.for_source(None).digest("pretrained", tasks, cfg.eval_episodes, cfg.eval_seed)
     pretrained = cached(base_key, lambda: success(parent))
     need = -(-max(cfg.counts) // len(cfg.unseen)) * cfg.stride
     points, skipped, collected = [], {}, {}
-    todo = [(s, k) for s in cfg.sources for k in cfg.counts]
+    todo = [(s, k, r) for s in cfg.sources for k in cfg.counts for r in range(cfg.repeats)]
     bar = tqdm(todo, desc="bench finetune", unit="point", disable=not progress)
     samples: dict[str, Samples] = {}
-    for source, k in bar:
-        bar.set_postfix(source=source, k=k)
+    for source, k, rep in bar:
+        bar.set_postfix(source=source, k=k, repeat=rep)
         if source in skipped:
             continue
         if source not in samples:
@@ -306,6 +384,8 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
             what += [cfg.cooldown, source, need] + ([cfg.return_after] if cfg.return_after != 1 else [])
             what += [GRASP_WINDOW] if source == GRASP else []
             what += [_signal_digest(cfg.policy, source)]
+            selection = cfg.selection(source)
+            what += [asdict(selection)] if selection != TakeoverSelection() else []  # success flags, enough kept
             digest = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
             stored = cache / f"samples-{source.replace(':', '_')}-{digest}.npz"
             try:
@@ -322,16 +402,28 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
                 "samples": samples[source].count(),
                 "takeovers": {t: len(r) for t, r in samples[source].runs.items()},
                 "gripper_closed_share": samples[source].gripper_closed_share(),
-            }
-        key = f"point-{source.replace(':', '_')}-{k}-" + cfg.digest(source, k, tasks)
+            } | (
+                {"in_successful_episodes": {t: sum(f) for t, f in flags.items()}}
+                if (flags := samples[source].successful)
+                else {}
+            )
+        key = f"point-{source.replace(':', '_')}-{k}-" + cfg.for_source(source).digest(
+            source, k, tasks, *([rep] if rep else [])
+        )
+        drawn = samples[source].shuffled(rep)
+        try:
+            recorded = {"recorded_steps": drawn.draw(k, cfg.stride, cfg.selection(source))[1]}
+        except ValueError:
+            recorded = {}
 
-        def compute(source=source, k=k) -> dict:
+        def compute(source=source, k=k, drawn=drawn, rep=rep) -> dict:
             try:
-                data = samples[source].first(k, cfg.stride)
+                data = drawn.first(k, cfg.stride, cfg.selection(source))
             except ValueError as exc:
                 return {"error": str(exc)}
             arrays = data.arrays(parent.config.obs_horizon, parent.config.action_horizon)
-            child, history = finetune_policy(parent, arrays, pre_train, cfg.finetune, progress=False)
+            recipe = replace(cfg.finetune, seed=cfg.finetune.seed + rep)
+            child, history = finetune_policy(parent, arrays, pre_train, recipe, progress=False)
             return {
                 "steps": history["steps"],
                 "obs_dims_widened": history["obs_dims_widened"],
@@ -340,7 +432,7 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
             }
 
         result = cached(key, compute)
-        points.append({"source": source, "samples": k, **result})
+        points.append({"source": source, "samples": k, "repeat": rep, **recorded, **result})
     bar.close()
     return {
         "benchmark": "finetune",

@@ -15,14 +15,21 @@ def _rate(success: dict, tasks: list[str]) -> float:
 
 
 def summarize(result: dict) -> dict:
-    """Per source: samples -> (training-object success, unseen-object success); the goal's verdict."""
+    """Per source: samples -> (training-object success, unseen-object success), means over the repeats,
+    and the unseen-object success of each repeat; the goal's verdict (on the means)."""
     cfg = result["config"]
     train, unseen = [cfg["train_task"]], list(cfg["unseen"])
     pre = result["pretrained"]
-    curves: dict[str, dict[int, tuple[float, float]]] = {}
+    rates: dict[str, dict[int, list[tuple[float, float]]]] = {}
     for p in result["points"]:
         if "success" in p:
-            curves.setdefault(p["source"], {})[p["samples"]] = (_rate(p["success"], train), _rate(p["success"], unseen))
+            rate = (_rate(p["success"], train), _rate(p["success"], unseen))
+            rates.setdefault(p["source"], {}).setdefault(p["samples"], []).append(rate)
+    curves = {
+        s: {k: (float(np.mean([r[0] for r in v])), float(np.mean([r[1] for r in v]))) for k, v in by_k.items()}
+        for s, by_k in rates.items()
+    }
+    repeats = {s: {k: [r[1] for r in v] for k, v in by_k.items()} for s, by_k in rates.items()}
     base_unseen = _rate(pre, unseen)
     default = next((s for s in cfg["sources"] if s.startswith("takeover:")), None)  # the first listed
     verdict = None
@@ -43,6 +50,7 @@ def summarize(result: dict) -> dict:
     return {
         "pretrained": {"train": _rate(pre, train), "unseen": base_unseen},
         "curves": curves,
+        "unseen_by_repeat": repeats,
         "verdict": verdict,
     }
 
@@ -57,7 +65,11 @@ def plot(summary: dict, out: Path) -> Path:
     for ax, which, title in ((axes[0], 1, "unseen objects"), (axes[1], 0, "training object (lift-cube)")):
         for source, curve in sorted(summary["curves"].items()):
             ks = sorted(curve)
-            ax.plot(ks, [curve[k][which] for k in ks], marker="o", label=source)
+            (line,) = ax.plot(ks, [curve[k][which] for k in ks], marker="o", label=source)
+            each = summary.get("unseen_by_repeat", {}).get(source, {})
+            if which and any(len(each.get(k, [])) > 1 for k in ks):  # the repeats' range
+                lo, hi = ([f(each[k]) for k in ks] for f in (min, max))
+                ax.fill_between(ks, lo, hi, color=line.get_color(), alpha=0.2, linewidth=0)
         base = summary["pretrained"]["unseen" if which else "train"]
         ax.axhline(base, color="grey", linestyle="--", label="pretrained")
         ax.set_xlabel("fine-tuning samples")
@@ -120,8 +132,19 @@ def _hand_back(cfg: dict) -> str:
     return f"continuous hand-back (back after {cfg.get('return_after', 1)} calm step(s)), "
 
 
+def _selection(cfg: dict) -> str:
+    """The takeover selection of the recipe, in words ('' when every step of every takeover is used)."""
+    ft = cfg.get("finetune", {})
+    parts = ["only takeovers in episodes that succeeded"] if ft.get("successful_only") else []
+    if ft.get("takeover_tail") is not None:
+        parts.append(f"of each takeover only its last {ft['takeover_tail']} steps, those that led to the hand-back")
+    return f" Takeover sources keep {'; '.join(parts)}." if parts else ""
+
+
 def markdown(result: dict, summary: dict, figure: Path | None, report: Path, command: str) -> str:
     cfg = result["config"]
+    repeats = cfg.get("repeats", 1)
+    extra = (" unseen, each repeat |", "---|", " - |") if repeats > 1 else ("", "", "")
     unseen = ", ".join(cfg["unseen"])
     lines = [
         "## Fine-tuning on takeover data (`hitl bench finetune`)",
@@ -139,18 +162,41 @@ def markdown(result: dict, summary: dict, figure: Path | None, report: Path, com
             f" Every source is subsampled: one step in {cfg['stride']} of each takeover or demonstration."
             if cfg.get("stride", 1) > 1
             else ""
+        )
+        + _selection(cfg),
+        "",
+        "Recorded steps: the steps of the takeovers (or demonstrations) the K samples were drawn from, whole, "
+        "with the ones left out on the way: what the samples cost the operator (or the expert). Steps: "
+        "training steps."
+        + (
+            f" Each point is repeated {repeats} times (repeat r > 0: the runs drawn in another seeded order, "
+            "fine-tuning seed + r); success rates are means over the repeats, the last column gives "
+            "each repeat's unseen-object success, and the figure shades their range."
+            if repeats > 1
+            else ""
         ),
         "",
-        "| source | samples | training object | unseen objects | steps |",
-        "|---|---|---|---|---|",
-        f"| pretrained | 0 | {summary['pretrained']['train']:.2f} | {summary['pretrained']['unseen']:.2f} | - |",
+        "| source | samples | recorded steps | training object | unseen objects | steps |" + extra[0],
+        "|---|---|---|---|---|---|" + extra[1],
+        f"| pretrained | 0 | - | {summary['pretrained']['train']:.2f} | {summary['pretrained']['unseen']:.2f} | - |"
+        + extra[2],
     ]
+    rows: dict[tuple[str, int], list[dict]] = {}
     for p in result["points"]:
-        if "success" not in p:
-            lines.append(f"| {p['source']} | {p['samples']} | - | - | {p.get('error', '')} |")
+        rows.setdefault((p["source"], p["samples"]), []).append(p)
+    for (source, k), ps in rows.items():
+        done = [p for p in ps if "success" in p]
+        recorded = [p["recorded_steps"] for p in ps if "recorded_steps" in p]
+        shown = round(float(np.mean(recorded))) if recorded else "-"
+        if not done:
+            lines.append(f"| {source} | {k} | {shown} | - | - | {ps[0].get('error', '')} |" + extra[2])
             continue
-        tr, un = summary["curves"][p["source"]][p["samples"]]
-        lines.append(f"| {p['source']} | {p['samples']} | {tr:.2f} | {un:.2f} | {p['steps']} |")
+        tr, un = summary["curves"][source][k]
+        each = " / ".join(f"{u:.2f}" for u in summary["unseen_by_repeat"][source][k])
+        lines.append(
+            f"| {source} | {k} | {shown} | {tr:.2f} | {un:.2f} | {done[0]['steps']} |"
+            + (f" {each} |" if extra[0] else "")
+        )
     lines.append("")
     lines += _first_close_table(result)
     lines += [
@@ -160,10 +206,10 @@ def markdown(result: dict, summary: dict, figure: Path | None, report: Path, com
     for source, c in result["collected"].items():
         tasks = list(c["samples"])
         closed = " / ".join(format(c["gripper_closed_share"][t], ".0%") for t in tasks)
+        ok = c.get("in_successful_episodes")
+        runs = " / ".join(str(c["takeovers"][t]) + (f" ({ok[t]} successful)" if ok else "") for t in tasks)
         lines.append(
-            f"| {source} | {' / '.join(str(c['takeovers'][t]) for t in tasks)} "
-            f"| {' / '.join(str(c['samples'][t]) for t in tasks)} "
-            f"| {closed} of the samples |"
+            f"| {source} | {runs} | {' / '.join(str(c['samples'][t]) for t in tasks)} | {closed} of the samples |"
         )
     lines.append(f"\n(per task: {', '.join(cfg['unseen'])})\n")
     if result["skipped_sources"]:

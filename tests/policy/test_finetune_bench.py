@@ -5,6 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from policy.finetune import FinetuneConfig
 from policy.finetune_bench import (
     FULL,
     GRASP,
@@ -15,6 +16,7 @@ from policy.finetune_bench import (
     grasp_window,
 )
 from policy.finetune_report import markdown, summarize
+from storage.takeovers import TakeoverSelection
 
 
 def _run(start: int, n: int, close_at: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -43,6 +45,97 @@ def test_the_first_k_samples_are_whole_runs_in_order_spread_over_the_tasks(tmp_p
     got = samples.first(7, stride=2)  # every other step of each run: a 0 2 | 100 102, b 200 202 | 300
     assert got.obs[:, 0].tolist() == [0, 2, 100, 102, 200, 202, 300]
     assert got.episode_ends.tolist() == [2, 4, 6, 7]
+
+
+def test_a_selection_passes_over_failed_episodes_takeovers_and_keeps_the_last_steps_of_the_rest(tmp_path):
+    samples = Samples({"a": [_run(0, 4), _run(100, 5), _run(200, 6)]}, {"a": [True, False, True]})
+    path = tmp_path / "s.npz"
+    samples.save(path)
+    samples = Samples.load(path)
+    assert samples.successful == {"a": [True, False, True]}
+
+    keep = TakeoverSelection(successful_only=True, tail=3)
+    got, recorded = samples.draw(5, selection=keep)
+    # the last 3 steps of the first takeover; the failed episode's passed over; the third one cut to its last 2
+    assert got.obs[:, 0].tolist() == [1, 2, 3, 204, 205] and got.episode_ends.tolist() == [3, 5]
+    assert recorded == 4 + 5 + 6  # every takeover drawn from or passed over, whole
+    assert samples.draw(5)[0].obs[:, 0].tolist() == [0, 1, 2, 3, 100]  # no selection: as recorded
+    assert samples.draw(5)[1] == 4 + 5
+    with pytest.raises(ValueError, match="only 6 samples of a collected, 7 wanted"):
+        samples.first(7, selection=keep)
+    # demonstrations (no outcome recorded) are all kept
+    assert Samples({"a": [_run(0, 4)]}).first(2, selection=keep).obs[:, 0].tolist() == [2, 3]
+
+
+def test_a_repeat_draws_the_same_runs_in_another_seeded_order():
+    samples = Samples({"a": [_run(i * 100, 3) for i in range(6)]}, {"a": [True, False, True, True, False, True]})
+    assert samples.shuffled(0) is samples
+    again = samples.shuffled(2)
+    assert again.shuffled(0) is again and samples.shuffled(2).runs["a"][0][0][0, 0] == again.runs["a"][0][0][0, 0]
+    starts = [int(o[0, 0]) for o, _ in again.runs["a"]]
+    assert sorted(starts) == [0, 100, 200, 300, 400, 500] and starts != [0, 100, 200, 300, 400, 500]
+    # each run keeps its episode's outcome
+    assert again.successful["a"] == [s not in (100, 400) for s in starts]
+
+
+def test_the_summary_averages_the_repeats_and_the_report_shows_each(tmp_path):
+    result = {
+        "config": {
+            "train_task": "cube",
+            "unseen": ["x", "y"],
+            "sources": ["takeover:stall", FULL],
+            "eval_episodes": 10,
+            "eval_seed": 1,
+            "hand_back": "operator",
+            "cooldown": 10,
+            "repeats": 2,
+        },
+        "pretrained": {"cube": {"success_rate": 1.0}, "x": {"success_rate": 0.0}, "y": {"success_rate": 0.0}},
+        "points": [
+            _point("takeover:stall", 100, (5, 5)) | {"repeat": 0, "recorded_steps": 200},
+            _point("takeover:stall", 100, (3, 3)) | {"repeat": 1, "recorded_steps": 210},
+            _point(FULL, 100, (2, 4)) | {"repeat": 0},
+            _point(FULL, 100, (4, 4)) | {"repeat": 1},
+        ],
+        "collected": {},
+        "skipped_sources": {},
+        "seconds": 1.0,
+        "read_from_cache": 0,
+        "computed_in_this_run": 5,
+        "policy": "p",
+        "trained_on": "cube",
+    }
+    summary = summarize(result)
+    assert summary["curves"]["takeover:stall"][100] == (1.0, pytest.approx(0.4))
+    assert summary["unseen_by_repeat"][FULL][100] == [pytest.approx(0.3), pytest.approx(0.4)]
+    assert summary["verdict"]["unseen_lift"] == pytest.approx(0.4) and summary["verdict"]["beats_full_trajectory"]
+    text = markdown(result, summary, None, tmp_path / "r.md", "x")
+    assert "| takeover:stall | 100 | 205 | 1.00 | 0.40 | 500 | 0.50 / 0.30 |" in text
+    assert "repeated 2 times" in text
+
+
+def test_each_takeover_carries_its_episodes_success():
+    from policy.finetune_bench import _runs_from_episodes
+
+    def episode(operator, success, first):
+        pairs = [(np.full(3, first + i, np.float32), np.zeros(10, np.float32)) for i in range(sum(operator))]
+        return SimpleNamespace(operator=operator, takeover_pairs=pairs, success=success)
+
+    flags = [False, True, True, False, True, True]  # two takeovers in each episode
+    runs, successful = _runs_from_episodes([episode(flags, False, 0), episode(flags, True, 100)], seed=0)
+    by_start = dict(zip((int(o[0, 0]) for o, _ in runs), successful, strict=True))
+    assert by_start == {0: False, 2: False, 100: True, 102: True}
+    assert sorted(len(o) for o, _ in runs) == [2, 2, 2, 2]
+
+
+def test_the_selection_bears_only_on_takeover_sources_and_their_cache_keys():
+    plain = FinetuneBenchConfig()
+    picky = FinetuneBenchConfig(finetune=FinetuneConfig(successful_only=True, takeover_tail=33))
+    assert picky.selection(FULL) == TakeoverSelection() and picky.selection("takeover:stall").tail == 33
+    # points of the other sources (and the pretrained one) are found in the cache of a run without it
+    assert picky.for_source(FULL).digest(FULL, 100) == plain.digest(FULL, 100)
+    assert picky.for_source(None).digest("pretrained") == plain.digest("pretrained")
+    assert picky.for_source("takeover:stall").digest("x") != plain.digest("x")
 
 
 def test_the_grasp_window_keeps_the_steps_around_the_first_close():
@@ -107,6 +200,8 @@ def test_the_config_refuses_unknown_sources_and_bad_counts_before_anything_runs(
     for stride in (0, 1.5, True):
         with pytest.raises(ValueError, match="stride must be an integer >= 1"):
             FinetuneBenchConfig(stride=stride)
+    with pytest.raises(ValueError, match="repeats must be an integer >= 1"):
+        FinetuneBenchConfig(repeats=0)
 
 
 def test_takeovers_are_collected_again_when_the_signal_is_recalibrated(tmp_path):
@@ -178,3 +273,9 @@ def test_the_report_shows_where_the_gripper_closes_for_the_points_that_recorded_
     result["config"]["finetune"] = {"ratio": 0.8}
     assert "with 80/20 mini-batches" in markdown(result, summarize(result), None, tmp_path / "r.md", "x")
     assert "| pretrained | 0 | " not in text.split("Where the gripper first closes")[1]
+    assert "Takeover sources keep" not in text  # every takeover step, by default
+    result["config"]["finetune"] = {"successful_only": True, "takeover_tail": 33}
+    result["points"][0]["recorded_steps"] = 180
+    text = markdown(result, summarize(result), None, tmp_path / "r.md", "x")
+    assert "Takeover sources keep only takeovers in episodes that succeeded" in text and "last 33 steps" in text
+    assert f"| {FULL} | 100 | 180 | 0.00 | 0.00 | 500 |" in text
