@@ -108,8 +108,8 @@ console-docs: install
 	$(BIN)/hitl bench console --out docs/bench-console-chromium.json --quiet || true
 
 # The object-frame lift policy (docs/policy.md, "The object frame") and its fine-tuning points (docs/benchmarks.md,
-# "finetune-object-frame", "finetune-stall"). It trains on the same 200 demonstrations as runs/lift-cube: seeds 0-199
-# of data/demos/lift-cube-dart, linked into their own folder (signals-docs adds 200 more). About 1 h on 2 cores.
+# "finetune-object-frame", "finetune-stall", "finetune-stall-successful-tail"). It trains on the same 200 demonstrations as runs/lift-cube: seeds 0-199
+# of data/demos/lift-cube-dart, linked into their own folder (signals-docs adds 200 more). About 1.5 h on 2 cores.
 frame-docs: install
 	mkdir -p data/demos/lift-cube-dart-200
 	for i in $$(seq -f "%06g" 0 199); do ln -sf ../lift-cube-dart/lift-cube_seed$$i.mcap data/demos/lift-cube-dart-200/ || exit 1; done
@@ -129,6 +129,16 @@ frame-docs: install
 	for s in 2 3; do $(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:stall full-trajectory \
 		--counts 100 --hand-back operator --stride $$s --cache runs/bench-finetune-obj --section finetune-stall-stride-$$s \
 		--report docs/benchmarks.md --figures docs/img --json --quiet --threads 2 > docs/bench-finetune-stall-stride-$$s.json \
+		|| exit 1; done
+	$(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:stall full-trajectory --counts 20 50 100 \
+		--hand-back operator --successful-only --takeover-tail 33 --repeats 3 --cache runs/bench-finetune-obj \
+		--section finetune-stall-successful-tail --report docs/benchmarks.md --figures docs/img --json --quiet --threads 2 \
+		> docs/bench-finetune-stall-successful-tail.json
+	ft="$(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:stall full-trajectory --counts 100 \
+		--hand-back operator --repeats 3 --cache runs/bench-finetune-obj --json --quiet --threads 2" && \
+		$$ft --takeover-tail 33 > docs/bench-finetune-stall-tail-33.json && \
+		$$ft --successful-only > docs/bench-finetune-stall-successful.json && \
+		for n in 20 50; do $$ft --successful-only --takeover-tail $$n > docs/bench-finetune-stall-successful-tail-$$n.json \
 		|| exit 1; done
 
 clean:
