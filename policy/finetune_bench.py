@@ -76,6 +76,8 @@ class FinetuneBenchConfig:
 
         if self.hand_back not in HAND_BACKS:
             raise ValueError(f"hand_back must be one of {HAND_BACKS}, got {self.hand_back!r}")
+        if self.return_after != 1 and self.hand_back != "continuous":
+            raise ValueError(f"return_after applies to the continuous hand-back only, not to {self.hand_back!r}")
 
         for source in self.sources:
             kind, _, signal = source.partition(":")

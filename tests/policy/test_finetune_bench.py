@@ -197,6 +197,12 @@ def test_the_config_refuses_unknown_sources_and_bad_counts_before_anything_runs(
     assert FinetuneBenchConfig(hand_back="operator", stride=2).stride == 2
     with pytest.raises(ValueError, match="hand_back must be one of"):
         FinetuneBenchConfig(hand_back="later")
+    assert FinetuneBenchConfig(hand_back="continuous", return_after=30).return_after == 30
+    for hand_back in ("operator", "budgeted"):  # the operator (or the budget) hands back: not the calm steps
+        with pytest.raises(
+            ValueError, match=f"return_after applies to the continuous hand-back only, not to '{hand_back}'"
+        ):
+            FinetuneBenchConfig(hand_back=hand_back, return_after=30)
     for stride in (0, 1.5, True):
         with pytest.raises(ValueError, match="stride must be an integer >= 1"):
             FinetuneBenchConfig(stride=stride)
