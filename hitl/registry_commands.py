@@ -118,7 +118,7 @@ def _finetune_config(args: argparse.Namespace, settings):
     given = {"eval_episodes": ft.eval_episodes, "tolerance": ft.tolerance, "min_gain": ft.min_gain}
     given["widen_obs_range"] = ft.widen_obs_range and not args.keep_obs_range
     given["successful_only"] = ft.successful_only if args.successful_only is None else args.successful_only
-    given["takeover_tail"] = ft.takeover_tail if args.takeover_tail is None else args.takeover_tail
+    given["takeover_tail"] = ft.takeover_tail if args.takeover_tail is None else (args.takeover_tail or None)
     given |= {
         k: getattr(args, k)
         for k in ("ratio", "steps", "batch_size", "lr", "seed", "eval_seed", "tolerance", "min_gain", "eval_episodes")
@@ -252,7 +252,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="only the last N steps of each takeover, those that led to the hand-back (default: settings, all)",
+        help="only the last N steps of each takeover, those that led to the hand-back (0: every step; "
+        "default: settings, every step)",
     )
     p.add_argument("--steps", type=int, default=None, help="fixed step count (default: scales with the data)")
     p.add_argument("--batch-size", type=int, default=None)

@@ -186,6 +186,10 @@ class Samples:
             out.append((len(o), o[keep], a[keep]))
         return out
 
+    def enough(self, need: int, selection: TakeoverSelection) -> bool:
+        """Whether every task has ``need`` steps that ``selection`` keeps."""
+        return all(sum(len(o) for _, o, _ in self.kept(t, selection) if o is not None) >= need for t in self.runs)
+
     def count(self) -> dict[str, int]:
         return {t: sum(len(o) for o, _ in r) for t, r in self.runs.items()}
 
@@ -306,7 +310,7 @@ def collect(
     successful: dict[str, list[bool]] = {}
     selection = cfg.selection(source)
     for ti, task in enumerate(cfg.unseen):
-        got, runs[task] = 0, []
+        runs[task] = []
         for r in range(cfg.collect_rounds):
             seeds = list(range(cfg.collect_seed + 1000 * ti + 16 * r, cfg.collect_seed + 1000 * ti + 16 * (r + 1)))
             if source in (FULL, GRASP):
@@ -335,8 +339,7 @@ def collect(
             else:  # FinetuneBenchConfig refuses any other
                 raise ValueError(f"unknown source {source!r}")
             runs[task] += new
-            got = sum(len(o) for _, o, _ in Samples(runs, successful).kept(task, selection) if o is not None)
-            if got >= need:
+            if Samples({task: runs[task]}, successful).enough(need, selection):
                 break
     return Samples(runs, successful)
 
@@ -387,13 +390,15 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
             what += [GRASP_WINDOW] if source == GRASP else []
             what += [_signal_digest(cfg.policy, source)]
             selection = cfg.selection(source)
-            what += [asdict(selection)] if selection != TakeoverSelection() else []  # success flags, enough kept
+            what += ["success flags"] if selection.successful_only else []  # files from before them have none
             digest = hashlib.sha256(json.dumps(what, default=str).encode()).hexdigest()[:16]
             stored = cache / f"samples-{source.replace(':', '_')}-{digest}.npz"
             try:
+                loaded = Samples.load(stored) if stored.is_file() else None
+                # collection is seeded: a longer one (for a selection that keeps less) starts the same
                 samples[source] = (
-                    Samples.load(stored)
-                    if stored.is_file()
+                    loaded
+                    if loaded is not None and loaded.enough(need, selection)
                     else collect(parent, cfg.policy, source, cfg, need, cache, progress)
                 )
             except Exception as exc:  # noqa: BLE001 - a signal that is not trained next to this policy

@@ -95,8 +95,11 @@ def _first_close_table(result: dict) -> list[str]:
     """Where the evaluated policies first closed the gripper on the unseen objects (points evaluated
     before this was recorded have nothing to show and are left out)."""
     unseen = list(result["config"]["unseen"])
+    repeated = result["config"].get("repeats", 1) > 1
     rows = [("pretrained", 0, result["pretrained"])] + [
-        (p["source"], p["samples"], p["success"]) for p in result["points"] if "success" in p
+        (p["source"] + (f", repeat {p.get('repeat', 0)}" if repeated else ""), p["samples"], p["success"])
+        for p in result["points"]
+        if "success" in p
     ]
     rows = [r for r in rows if all((r[2][t].get("first_close") or {}).get("episodes") for t in unseen)]
     if not rows:
@@ -137,7 +140,10 @@ def _selection(cfg: dict) -> str:
     ft = cfg.get("finetune", {})
     parts = ["only takeovers in episodes that succeeded"] if ft.get("successful_only") else []
     if ft.get("takeover_tail") is not None:
-        parts.append(f"of each takeover only its last {ft['takeover_tail']} steps, those that led to the hand-back")
+        parts.append(
+            f"of each takeover only its last {ft['takeover_tail']} steps, those that led to the hand-back "
+            "(a takeover cut to fit K keeps its last steps)"
+        )
     return f" Takeover sources keep {'; '.join(parts)}." if parts else ""
 
 

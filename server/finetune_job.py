@@ -161,9 +161,10 @@ class FinetuneRunner:
                 for key in ("segment_ids", "skipped_segment_ids", "excluded_segment_ids")
                 for i in (v.manifest or {}).get(key, [])
             }
-            # a takeover whose episode is still running is news once it has ended, when the outcome counts
-            waiting = {s.id for s in self._select(segments, request.config.selection)[2]}
-            if any(s.id not in used and s.id not in waiting for s in segments):
+            # news: what the selection would learn from (a takeover it leaves out starts no job; one whose
+            # episode is still running is news once its episode has ended, if it succeeded)
+            kept = {s.id for s in self._select(segments, request.config.selection)[0]}
+            if any(s.id not in used and s.id in kept for s in segments):
                 plans.append(Plan(name, active, segments))
         return plans
 
@@ -241,6 +242,8 @@ class FinetuneRunner:
         unfinished ones (their holder is gone: we hold the lease) are marked interrupted."""
         key = {
             "segment_ids": plan.segment_ids,
+            # the selection's choice too: a takeover whose episode has ended since must not resume old training
+            "selected_segment_ids": [s.id for s in self._select(plan.segments, request.config.selection)[0]],
             "source": request.source,
             "episodes": str(plan.episodes or ""),
             "pretrain_data": str(request.pretrain_data or ""),

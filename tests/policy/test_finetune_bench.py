@@ -65,6 +65,8 @@ def test_a_selection_passes_over_failed_episodes_takeovers_and_keeps_the_last_st
         samples.first(7, selection=keep)
     # demonstrations (no outcome recorded) are all kept
     assert Samples({"a": [_run(0, 4)]}).first(2, selection=keep).obs[:, 0].tolist() == [2, 3]
+    # a cached collection serves another selection only if that one keeps enough of it
+    assert samples.enough(6, keep) and not samples.enough(7, keep) and samples.enough(15, TakeoverSelection())
 
 
 def test_a_repeat_draws_the_same_runs_in_another_seeded_order():

@@ -222,6 +222,7 @@ def test_a_job_on_successful_episodes_leaves_out_the_rest_and_waits_for_running_
             s.add(_closed_segment(name, parent.id, datetime.now(UTC), episode_id=episodes[outcome].id))
         s.commit()
         ids = {Path(seg.path).stem: seg.id for seg in s.scalars(select(SegmentRecord))}
+        ids["timed-out-episode"] = episodes["timeout"].id
         running_episode = episodes[None].id
     lines = []
     cfg = replace(TINY, successful_only=True, takeover_tail=3)
@@ -239,9 +240,16 @@ def test_a_job_on_successful_episodes_leaves_out_the_rest_and_waits_for_running_
     assert child.manifest["excluded_segment_ids"] == [ids["timed-out"]]
     config = read_info(child.path)["finetune"]["config"]
     assert config["successful_only"] is True and config["takeover_tail"] == 3
-    # the left-out takeover is not news the next night; the running one is, once its episode has ended
+    # the left-out takeover is not news the next night, nor is a new one the selection leaves out; the
+    # running one is, once its episode has succeeded
     nightly = JobRequest(config=cfg)
     assert runner.plan(nightly) == []
+    write_segment(data_dir / "segments" / "timed-out-2.mcap", obs_dim, seed=5)
+    with sessions() as s:
+        s.add(_closed_segment("timed-out-2", parent.id, datetime.now(UTC), episode_id=ids["timed-out-episode"]))
+        s.commit()
+    assert runner.plan(nightly) == []
+    assert [p.lineage for p in runner.plan(JobRequest(config=TINY))] == ["lift-cube"]  # news without the selection
     with sessions() as s:
         s.get(EpisodeRecord, running_episode).outcome = "success"
         s.commit()

@@ -55,8 +55,8 @@ def test_the_cli_reports_a_bad_config_without_a_traceback(tmp_path, capsys):
     assert "budget_steps" in capsys.readouterr().err
     assert main(["serve", "--config", str(tmp_path / "missing.toml")]) == 2
     capsys.readouterr()
-    assert main(["finetune", "--data-dir", str(tmp_path / "var"), "--takeover-tail", "0", "--quiet"]) == 2
-    assert "takeover tail must be an integer >= 1 or None, got 0" in capsys.readouterr().err
+    assert main(["finetune", "--data-dir", str(tmp_path / "var"), "--takeover-tail", "-1", "--quiet"]) == 2
+    assert "takeover tail must be an integer >= 1 or None, got -1" in capsys.readouterr().err
 
 
 def test_tokens_are_stored_hashed_and_can_be_revoked(tmp_path):
@@ -75,3 +75,19 @@ def test_tokens_are_stored_hashed_and_can_be_revoked(tmp_path):
         create_token(sessions, "bob", "root")
     assert Principal("a", "admin").has("operator") and not Principal("v", "viewer").has("operator")
     assert revoke_token(sessions, "alice") and authenticate(sessions, token) is None
+
+
+def test_the_jobs_takeover_selection_comes_from_settings_with_flags_on_top():
+    from hitl.cli import build_parser
+    from hitl.registry_commands import _finetune_config
+
+    settings = Settings(finetune={"successful_only": True, "takeover_tail": 33})
+
+    def config(*flags):
+        return _finetune_config(build_parser().parse_args(["finetune", *flags]), settings)
+
+    assert (config().successful_only, config().takeover_tail) == (True, 33)
+    assert config("--takeover-tail", "20").takeover_tail == 20
+    assert config("--takeover-tail", "0").takeover_tail is None  # every step again
+    assert config("--no-successful-only").successful_only is False
+    assert _finetune_config(build_parser().parse_args(["finetune"]), Settings()).selection.tail is None
