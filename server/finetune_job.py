@@ -380,7 +380,8 @@ class FinetuneRunner:
         )
         if not len(fresh[keys.OBS]):
             raise FinetuneDataError(
-                f"no usable sample: {len(skipped)} segment(s) skipped, {len(excluded)} left out by the selection ("
+                f"no usable sample: {len(skipped)} segment(s) skipped, {len(excluded)} left out by the selection, "
+                f"{counts.get('waiting', 0)} waiting for their episode to end ("
                 + "; ".join(f"{k}: {v}" for k, v in list((skipped | excluded).items())[:5])
                 + ")"
             )

@@ -256,6 +256,23 @@ def test_a_job_on_successful_episodes_leaves_out_the_rest_and_waits_for_running_
     assert [p.lineage for p in runner.plan(nightly)] == ["lift-cube"]
 
 
+def test_a_job_whose_takeovers_are_all_left_out_or_waiting_fails_and_says_why(store):
+    sessions, data_dir, _ = store
+    with sessions() as s:
+        episode = EpisodeRecord(robot_id=0, task="lift-nut", seed=1, outcome=None)
+        s.add(episode)
+        s.flush()
+        for seg in s.scalars(select(SegmentRecord)):
+            seg.episode_id = episode.id if seg.path.endswith("good-1.mcap") else None
+        s.commit()
+    request = JobRequest(policy="lift-cube", config=replace(TINY, successful_only=True))
+    [summary] = FinetuneRunner(sessions, data_dir, progress=False).run(request)
+    assert summary["status"] == "failed"
+    assert "0 segment(s) skipped, 2 left out by the selection, 1 waiting for their episode to end" in summary["error"]
+    assert "no episode recorded for it" in summary["error"]
+    assert [v.ref for v in registry.versions(sessions, "lift-cube")] == ["lift-cube@1"]
+
+
 def test_since_parses_durations():
     assert parse_since("24h") == timedelta(hours=24) and parse_since("30m") == timedelta(minutes=30)
     assert parse_since("7d") == timedelta(days=7)
