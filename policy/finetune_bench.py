@@ -199,10 +199,6 @@ class Samples:
             t: float(np.mean(np.concatenate([a[:, -1] for _, a in r]) > 0)) if r else 0.0 for t, r in self.runs.items()
         }
 
-    def first(self, k: int, stride: int = 1, selection: TakeoverSelection | None = None) -> TakeoverSet:
-        """``draw``'s samples."""
-        return self.draw(k, stride, selection)[0]
-
     def draw(self, k: int, stride: int = 1, selection: TakeoverSelection | None = None) -> tuple[TakeoverSet, int]:
         """The first ``k`` samples, ``k / len(tasks)`` from each task (the remainder to the first ones),
         whole runs in order, the last one cut (to its first steps; to its last ones with a ``selection``
@@ -417,17 +413,15 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
         key = f"point-{source.replace(':', '_')}-{k}-" + cfg.for_source(source).digest(
             source, k, tasks, *([rep] if rep else [])
         )
-        drawn = samples[source].shuffled(rep)
         try:
-            recorded = {"recorded_steps": drawn.draw(k, cfg.stride, cfg.selection(source))[1]}
-        except ValueError:
-            recorded = {}
+            data, steps = samples[source].shuffled(rep).draw(k, cfg.stride, cfg.selection(source))
+            recorded, error = {"recorded_steps": steps}, None
+        except ValueError as exc:
+            data, recorded, error = None, {}, str(exc)
 
-        def compute(source=source, k=k, drawn=drawn, rep=rep) -> dict:
-            try:
-                data = drawn.first(k, cfg.stride, cfg.selection(source))
-            except ValueError as exc:
-                return {"error": str(exc)}
+        def compute(data=data, error=error, rep=rep) -> dict:
+            if data is None:
+                return {"error": error}
             arrays = data.arrays(parent.config.obs_horizon, parent.config.action_horizon)
             recipe = replace(cfg.finetune, seed=cfg.finetune.seed + rep)
             child, history = finetune_policy(parent, arrays, pre_train, recipe, progress=False)

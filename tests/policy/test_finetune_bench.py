@@ -36,13 +36,13 @@ def test_the_first_k_samples_are_whole_runs_in_order_spread_over_the_tasks(tmp_p
     samples = Samples.load(path)
     assert samples.count() == {"a": 9, "b": 12}
 
-    got = samples.first(13)  # 7 from a (the first one: 13 % 2), 6 from b
+    got = samples.draw(13)[0]  # 7 from a (the first one: 13 % 2), 6 from b
     assert got.obs[:, 0].tolist() == [0, 1, 2, 3, 100, 101, 102, 200, 201, 202, 300, 301, 302]
     assert got.episode_ends.tolist() == [4, 7, 10, 13]  # the last run of each task is cut, never joined
     with pytest.raises(ValueError, match="only 9 samples of a collected, 10 wanted"):
-        samples.first(20)
+        samples.draw(20)
 
-    got = samples.first(7, stride=2)  # every other step of each run: a 0 2 | 100 102, b 200 202 | 300
+    got = samples.draw(7, stride=2)[0]  # every other step of each run: a 0 2 | 100 102, b 200 202 | 300
     assert got.obs[:, 0].tolist() == [0, 2, 100, 102, 200, 202, 300]
     assert got.episode_ends.tolist() == [2, 4, 6, 7]
 
@@ -62,9 +62,9 @@ def test_a_selection_passes_over_failed_episodes_takeovers_and_keeps_the_last_st
     assert samples.draw(5)[0].obs[:, 0].tolist() == [0, 1, 2, 3, 100]  # no selection: as recorded
     assert samples.draw(5)[1] == 4 + 5
     with pytest.raises(ValueError, match="only 6 samples of a collected, 7 wanted"):
-        samples.first(7, selection=keep)
+        samples.draw(7, selection=keep)
     # demonstrations (no outcome recorded) are all kept
-    assert Samples({"a": [_run(0, 4)]}).first(2, selection=keep).obs[:, 0].tolist() == [2, 3]
+    assert Samples({"a": [_run(0, 4)]}).draw(2, selection=keep)[0].obs[:, 0].tolist() == [2, 3]
     # a cached collection serves another selection only if that one keeps enough of it
     assert samples.enough(6, keep) and not samples.enough(7, keep) and samples.enough(15, TakeoverSelection())
 
