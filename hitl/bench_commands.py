@@ -1,4 +1,4 @@
-"""``hitl bench hitl``: the human-in-the-loop benchmark (``policy.hitl_bench``), printed as JSON."""
+"""``hitl bench hitl``: the human-in-the-loop benchmark (``bench.hitl.run``), printed as JSON."""
 
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ def _policies(args: argparse.Namespace, tasks: tuple[str, ...]) -> tuple[tuple[s
 
 
 def recipe_from_args(args: argparse.Namespace):
-    from policy.hitl_bench import DEFAULT_QUANTILES, QUICK_QUANTILES, Recipe, SignalSpec
+    from bench.hitl.run import DEFAULT_QUANTILES, QUICK_QUANTILES, Recipe, SignalSpec
     from policy.signals import SIGNALS
 
     quick = args.quick
@@ -71,8 +71,8 @@ def recipe_from_args(args: argparse.Namespace):
 
 
 def _cmd_bench_hitl(args: argparse.Namespace) -> int:
-    from policy.hitl_bench import default_jobs, run_benchmark
-    from policy.hitl_report import summarize
+    from bench.hitl.report import summarize
+    from bench.hitl.run import default_jobs, run_benchmark
 
     recipe = recipe_from_args(args)
     raw = run_benchmark(
@@ -93,7 +93,7 @@ def _cmd_bench_hitl(args: argparse.Namespace) -> int:
         args.raw.parent.mkdir(parents=True, exist_ok=True)
         args.raw.write_text(json.dumps(raw))
     if args.report:
-        from policy.hitl_docs import write_report
+        from bench.hitl.docs import write_report
 
         summary["report"] = str(write_report(summary, raw, args.report, args.figures, args.section))
     print(json.dumps(summary, indent=None if args.json else 2))
@@ -101,7 +101,7 @@ def _cmd_bench_hitl(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_hitl_service(args: argparse.Namespace) -> int:
-    from server.bench_hitl_service import bench_hitl_service
+    from bench.hitl_service import bench_hitl_service
     from sim.registry import TASKS
 
     if args.task not in TASKS:
@@ -130,7 +130,7 @@ def _cpus() -> int:
 
 
 def register(bench: argparse._SubParsersAction) -> None:
-    from policy.hitl_bench import VERSION
+    from bench.hitl.run import VERSION
 
     q = bench.add_parser(
         "hitl",
@@ -187,10 +187,10 @@ def register(bench: argparse._SubParsersAction) -> None:
 def _cmd_bench_finetune(args: argparse.Namespace) -> int:
     import torch
 
+    from bench.finetune.report import markdown, plot, summarize
+    from bench.finetune.run import FinetuneBenchConfig, run_bench
+    from bench.hitl.docs import replace_section
     from policy.finetune import FinetuneConfig
-    from policy.finetune_bench import FinetuneBenchConfig, run_bench
-    from policy.finetune_report import markdown, plot, summarize
-    from policy.hitl_docs import replace_section
 
     given = {k: v for k, v in (("policy", args.policy), ("eval_episodes", args.episodes)) if v is not None}
     if args.sources:

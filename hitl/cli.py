@@ -1,17 +1,27 @@
-"""``hitl``: the project's command line.
+"""``hitl``: the project's command line. Each subcommand's code lives in the module named beside it.
 
-Subcommands:
-  tasks     list the registered tasks with their observation and action specs
-  demos     record scripted demonstrations as MCAP episodes
-  inspect   check episode files (and salvage truncated ones with --recover)
-  experts   measure scripted-expert success and write the table to docs/
-  train     train a diffusion policy on demonstrations
-  rollout   run a policy autonomously and report success and uncertainty
-  calibrate set the uncertainty threshold from held-out validation episodes
-  plot      write figures to docs/
-  bench     print speed measurements as JSON (bench console: the operator console's cost)
-  serve     run the fleet service with the operator console at /console/
-  docs      generate documentation assets (docs screenshots: the console's pictures)
+Data and policies (this module, ``policy_commands``, ``signal_commands``):
+  tasks         list the registered tasks with their observation and action specs
+  demos         record scripted demonstrations as MCAP episodes
+  inspect       check episode files (and salvage truncated ones with --recover)
+  experts       measure scripted-expert success and write the table to docs/
+  train         train a diffusion policy on demonstrations
+  rollout       run a policy autonomously and report success and uncertainty
+  calibrate     set the uncertainty threshold from held-out validation episodes
+  train-signal  train an assistance signal's models (if any) and calibrate it
+  assist        assisted rollouts: a driver signal asks the simulated operator, the others in shadow
+The service (``server_commands``, ``registry_commands``):
+  serve         run the fleet service with the operator console at /console/
+  operator-bot  the simulated operator, claiming queued robots through the API
+  token         create or revoke API tokens
+  policy        the policy registry: list, promote, rollback (to the version before)
+  finetune      fine-tune on takeover segments, recalibrate, evaluate, gate
+Benchmarks, reports and figures (``bench_commands``, ``console_commands``; the code is in ``bench/``):
+  bench         uncertainty, signals, fleet, api, loop, finetune-load, hitl, hitl-service, finetune,
+                console: each prints its measurements as JSON
+  report        sanity (the paper's sanity checks), separation (every signal's AUROC)
+  plot          uncertainty: figures of U along rollouts
+  docs          screenshots: the console's pictures, in headless Chromium
 """
 
 from __future__ import annotations

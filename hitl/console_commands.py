@@ -10,7 +10,7 @@ from pathlib import Path
 
 
 def _cmd_screenshots(args: argparse.Namespace) -> int:
-    from web.screenshots import take_screenshots
+    from bench.screenshots import take_screenshots
 
     for path in take_screenshots(args.config, args.out, chromium=args.chromium):
         print(f"wrote {path}")
@@ -18,7 +18,7 @@ def _cmd_screenshots(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_console(args: argparse.Namespace) -> int:
-    from web.bench import bench_console
+    from bench.console import bench_console
 
     if not 1 <= args.browsers <= args.robots <= 64:
         raise ValueError(f"need 1 <= --browsers <= --robots <= 64, got {args.browsers} and {args.robots}")

@@ -19,6 +19,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from policy.train import TrainConfig, train_policy
     from sim.registry import make_task
     from storage.dataset import DatasetConfig, load_dataset
+    from storage.paths import portable
 
     task = make_task(args.task)  # validates the name; the simulator is not built
     frame = ObjectFrame.from_obs_spec(task.obs_spec) if args.frame == "object" else None  # before any data
@@ -74,7 +75,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     info = {
         "task": args.task,
         "dataset": {
-            "folder": str(Path(args.data).resolve()),
+            "folder": portable(args.data),
             "episodes": ds.num_episodes,
             "train_episodes": [ds.names[i] for i in train_ep],
             "val_episodes": [ds.names[i] for i in val_ep],
@@ -208,8 +209,9 @@ def _set_threads(args: argparse.Namespace) -> None:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     _set_threads(args)
-    from policy.calibrate import calibrate, rollout_check
+    from policy.calibrate import calibrate
     from policy.checkpoint import load_policy, save_calibration
+    from policy.evaluate import rollout_check
 
     policy, info = load_policy(args.policy)
     config = _uncertainty_config(args)
@@ -269,8 +271,8 @@ def _policy_with(args: argparse.Namespace):
 def _cmd_plot(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from bench.figures import plot_field, plot_timeline
     from policy.evaluate import context_for, rollout_policy
-    from policy.plots import plot_field, plot_timeline
 
     policy, info, calibration = _policy_with(args)
     threshold = calibration["threshold"] if calibration else None
@@ -325,7 +327,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from policy.bench import bench_uncertainty
+    from bench.uncertainty import bench_uncertainty
     from policy.devices import prepare_for_serving
     from policy.evaluate import rollout_policy
     from policy.signals import SignalError, load_signal
@@ -378,7 +380,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _cmd_report(args: argparse.Namespace) -> int:
     _set_threads(args)
-    from policy.report import sanity_report
+    from bench.sanity import sanity_report
 
     episodes = {
         "lift-cube": args.episodes_lift,
@@ -398,8 +400,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 def _cmd_separation(args: argparse.Namespace) -> int:
     _set_threads(args)
+    from bench.separation import shift_separation
     from policy.checkpoint import load_policy
-    from policy.separation import shift_separation
 
     policy, info = load_policy(args.policy)
     in_task = args.in_task or info.get("task")

@@ -17,7 +17,7 @@ def _settings(args: argparse.Namespace):
 def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from server.app import create_app
+    from service.app import create_app
 
     settings = _settings(args)
     # one format for the service's and uvicorn's lines (log_config=None: uvicorn's loggers propagate here);
@@ -70,7 +70,7 @@ def _cmd_operator_bot(args: argparse.Namespace) -> int:
 def _cmd_bench_finetune_load(args: argparse.Namespace) -> int:
     import json
 
-    from server.bench_finetune_load import bench_finetune_load
+    from bench.finetune_load import bench_finetune_load
 
     result = bench_finetune_load(
         robots=args.robots,
@@ -93,8 +93,8 @@ def _cmd_bench_finetune_load(args: argparse.Namespace) -> int:
 def _cmd_bench_fleet(args: argparse.Namespace) -> int:
     import json
 
+    from bench.fleet import bench_fleet
     from policy.devices import check_device
-    from server.bench import bench_fleet
     from server.settings import Settings
 
     sizes = [int(x) for x in args.robots.split(",") if x.strip()]
@@ -122,7 +122,7 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
 def _cmd_bench_api(args: argparse.Namespace) -> int:
     import json
 
-    from server.bench_api import bench_api
+    from bench.api import bench_api
 
     if not 1 <= args.robots <= 64:
         raise ValueError(f"--robots must be in 1..64, got {args.robots}")
@@ -151,7 +151,7 @@ def _cmd_bench_api(args: argparse.Namespace) -> int:
 def _cmd_bench_loop(args: argparse.Namespace) -> int:
     import json
 
-    from server.bench_loop import run_loop
+    from bench.loop import run_loop
 
     if args.seconds <= 0:
         raise ValueError(f"--seconds must be positive, got {args.seconds}")

@@ -34,8 +34,9 @@ def _load(args: argparse.Namespace):
 
 
 def _cmd_train_signal(args: argparse.Namespace) -> int:
+    from policy.signal_data import demo_data, policy_rollouts
     from policy.signals import make_signal, save_signal
-    from policy.signals.data import demo_data, policy_rollouts
+    from storage.paths import portable
 
     policy, info = _load(args)
     signal = make_signal(args.signal, policy, _parse_settings(args.set))
@@ -53,7 +54,7 @@ def _cmd_train_signal(args: argparse.Namespace) -> int:
         {
             "training": training,
             "data": {
-                "demonstrations": str(Path(args.data).resolve()),
+                "demonstrations": portable(args.data),
                 "train_steps": len(data.train),
                 "val_steps": len(data.val),
                 "rollouts": None
@@ -153,7 +154,7 @@ def _cmd_assist(args: argparse.Namespace) -> int:
     if args.scores:
         out["scores"] = [{"seed": e.seed, "operator": e.operator, "scores": e.scores} for e in episodes]
     if args.plot:
-        from policy.plots import plot_signal_comparison
+        from bench.figures import plot_signal_comparison
 
         args.plot.mkdir(parents=True, exist_ok=True)
         path = plot_signal_comparison(
@@ -167,10 +168,10 @@ def _cmd_assist(args: argparse.Namespace) -> int:
 def _cmd_bench_signals(args: argparse.Namespace) -> int:
     import torch
 
+    from bench.signals import bench_signals
     from policy.checkpoint import load_policy
+    from policy.signal_data import policy_rollouts
     from policy.signals import SignalError
-    from policy.signals.bench import bench_signals
-    from policy.signals.data import policy_rollouts
 
     policy, info = _load(args)
     task = args.task or info["task"]

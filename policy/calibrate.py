@@ -7,7 +7,7 @@ gripper dimension holds the command in force at that step (the previous
 action's gripper, open at the first step), as in live rollouts.
 
 By construction 1 - quantile of the validation steps lie above the threshold.
-``rollout_check`` measures the same share on the policy's own autonomous
+``policy.evaluate.rollout_check`` measures the same share on the policy's own autonomous
 rollouts of its training task, which is what the fleet sees: a share far above
 the validation one (``FLAG_SHARE``) means the validation states do not look
 like the states the policy visits, and the robots would flood the queue.
@@ -25,6 +25,7 @@ from policy.diffusion_policy import DiffusionPolicy
 from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
 from sim.rotations import quat_to_rot6d
 from storage.dataset import DatasetConfig, DemoDataset, load_dataset
+from storage.paths import portable
 
 FLAG_SHARE = 0.15  # a rollout share above the threshold over this is a calibration problem
 
@@ -110,48 +111,7 @@ def calibrate(
         "validation_share_above": float(np.mean(u > threshold)),
         "samples": int(len(u)),
         "episodes": used,
-        "data": str(Path(data).resolve()),
+        "data": portable(data),
         "uncertainty": config.to_dict(),
         "u_stats": {"mean": float(u.mean()), "median": float(np.median(u)), "max": float(u.max())},
-    }
-
-
-def rollout_check(
-    policy: DiffusionPolicy,
-    task: str,
-    threshold: float,
-    config: UncertaintyConfig,
-    episodes: int = 10,
-    seed: int = 3000,
-    n_envs: int = 5,
-    progress: bool = True,
-) -> dict:
-    """The share of steps above ``threshold`` on autonomous rollouts of ``task`` (seeds ``seed``..),
-    through the one controller with the same uncertainty settings; ``flagged`` when over FLAG_SHARE.
-    Only episodes' steps count; success is reported beside it (a policy that fails its own task
-    visits states the validation set lacks)."""
-    from policy.evaluate import rollout_policy
-
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
-    eps, _ = rollout_policy(
-        policy,
-        task,
-        list(range(seed, seed + episodes)),
-        n_envs=min(n_envs, episodes),
-        uncertainty=config,
-        progress=progress,
-    )
-    u = np.concatenate([e.uncertainty for e in eps])
-    share = float(np.mean(u > threshold))
-    return {
-        "task": task,
-        "episodes": episodes,
-        "seeds": [seed, seed + episodes - 1],
-        "successes": int(sum(e.success for e in eps)),
-        "steps": int(len(u)),
-        "share_above": share,
-        "flag_share": FLAG_SHARE,
-        "flagged": share > FLAG_SHARE,
-        "u_median": float(np.median(u)),
     }

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import torch
 from safetensors.torch import load_file, save_file
 
 from policy.config import DiffusionPolicyConfig
@@ -91,8 +90,3 @@ def load_calibration(folder: str | Path) -> dict | None:
     if not path.is_file():
         return None
     return json.loads(path.read_text())
-
-
-def state_equal(a: DiffusionPolicy, b: DiffusionPolicy) -> bool:
-    sa, sb = a.state_dict(), b.state_dict()
-    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)

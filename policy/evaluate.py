@@ -3,7 +3,8 @@
 ``rollout_policy`` runs episodes in waves of ``n_envs`` simulated robots that
 step in lockstep (``policy.lockstep``) through the fleet's ``Controller``: the
 policy and the uncertainty are called once per control step for the whole
-wave, and chunks are queued exactly as the fleet serves them.
+wave, and chunks are queued exactly as the fleet serves them. ``rollout_check`` measures a
+calibrated threshold on such rollouts (the share of steps above it).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from policy.calibrate import FLAG_SHARE
 from policy.controller import Controller, ControllerConfig, RobotStep
 from policy.diffusion_policy import DiffusionPolicy
 from policy.lockstep import run_lockstep
@@ -145,3 +147,42 @@ def summarize(episodes: list[PolicyEpisode]) -> dict:
             },
         }
     return out
+
+
+def rollout_check(
+    policy: DiffusionPolicy,
+    task: str,
+    threshold: float,
+    config: UncertaintyConfig,
+    episodes: int = 10,
+    seed: int = 3000,
+    n_envs: int = 5,
+    progress: bool = True,
+) -> dict:
+    """The share of steps above ``threshold`` on autonomous rollouts of ``task`` (seeds ``seed``..),
+    through the one controller with the same uncertainty settings; ``flagged`` when over FLAG_SHARE.
+    Only episodes' steps count; success is reported beside it (a policy that fails its own task
+    visits states the validation set lacks)."""
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    eps, _ = rollout_policy(
+        policy,
+        task,
+        list(range(seed, seed + episodes)),
+        n_envs=min(n_envs, episodes),
+        uncertainty=config,
+        progress=progress,
+    )
+    u = np.concatenate([e.uncertainty for e in eps])
+    share = float(np.mean(u > threshold))
+    return {
+        "task": task,
+        "episodes": episodes,
+        "seeds": [seed, seed + episodes - 1],
+        "successes": int(sum(e.success for e in eps)),
+        "steps": int(len(u)),
+        "share_above": share,
+        "flag_share": FLAG_SHARE,
+        "flagged": share > FLAG_SHARE,
+        "u_median": float(np.median(u)),
+    }

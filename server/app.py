@@ -1,4 +1,7 @@
-"""``create_app(settings)``: the FastAPI service. Nothing is created at import time.
+"""``create_app(settings, extensions)``: the FastAPI service. Nothing is created at import time.
+
+The service as run (``hitl serve``) is assembled one level up, in ``service.app``, which mounts the
+operator console (``web/``) as an extension: this package never imports ``web/``.
 
 The lifespan applies migrations, recovers the segments and episodes a crash left open, builds the
 fleet and starts its control loop; on shutdown (SIGTERM included, through uvicorn) it finishes
@@ -16,15 +19,17 @@ import asyncio
 import importlib.resources
 import logging
 import re
+from collections.abc import Sequence
 from contextlib import asynccontextmanager
+from typing import Protocol
 
-from fastapi import FastAPI, Request
+from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.api import assistance, console, finetune, policies, records, robots, system, ws_messages
+from server.api import assistance, finetune, policies, records, robots, system, ws_messages
 from server.api.schemas import ErrorOut, FieldError
 from server.auth import TokenCache
 from server.db import make_engine, migrate, session_factory
@@ -33,8 +38,6 @@ from server.fleet import Fleet
 from server.recording import recover
 from server.scheduler import JobLauncher, Scheduler
 from server.settings import Settings
-from web.console import Console
-from web.sessions import ConsoleSessions
 
 log = logging.getLogger("hitl.server")
 API_PREFIX = "/api/v1"
@@ -170,7 +173,22 @@ class BodyLimit:
         await self.app(scope, replay, send)
 
 
-def create_app(settings: Settings) -> FastAPI:
+class ServiceExtension(Protocol):
+    """What a part of the service that lives above ``server/`` adds to the app (the operator console,
+    ``web.extension``): routes, and what it runs beside the fleet. ``start`` is called once the fleet is
+    built and before its control loop starts; ``stop`` on shutdown, before the fleet stops."""
+
+    router: APIRouter
+
+    def start(self, app: FastAPI, fleet: Fleet) -> None: ...
+
+    def stop(self, app: FastAPI) -> None: ...
+
+
+def create_app(settings: Settings, extensions: Sequence[ServiceExtension] = ()) -> FastAPI:
+    """The REST service on ``settings``, with ``extensions`` mounted (``service.app.create_app`` adds the
+    console)."""
+
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         install_log_filters()
@@ -191,11 +209,8 @@ def create_app(settings: Settings) -> FastAPI:
         fleet = Fleet(settings, sessions)
         app.state.settings, app.state.sessions, app.state.fleet = settings, sessions, fleet
         app.state.tokens = TokenCache(sessions)
-        app.state.console_sessions = ConsoleSessions()
-        app.state.console = None
-        if settings.console:
-            app.state.console = Console(fleet, settings.control_hz)
-            app.state.console.start()
+        for extension in extensions:
+            extension.start(app, fleet)
         fleet.start()
         log.info("fleet of %d robot(s) started; ready once its control loop has ticked", len(fleet.robots))
         app.state.launcher = JobLauncher(settings.data_dir, url, settings.finetune)
@@ -214,8 +229,8 @@ def create_app(settings: Settings) -> FastAPI:
             if app.state.scheduler is not None:
                 app.state.scheduler.stop()
             app.state.launcher.stop()  # a job in progress records itself interrupted and resumes next time
-            if app.state.console is not None:
-                app.state.console.stop()
+            for extension in reversed(extensions):
+                extension.stop(app)
             fleet.stop()
             engine.dispose()
 
@@ -242,7 +257,8 @@ def create_app(settings: Settings) -> FastAPI:
 
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.include_router(system.router)
-    app.include_router(console.router)
+    for extension in extensions:
+        app.include_router(extension.router)
     for router in (robots.router, assistance.router, records.router, policies.router, finetune.router, system.api):
         app.include_router(router, prefix=API_PREFIX)
     _add_docs(app)

@@ -506,8 +506,8 @@ class FinetuneRunner:
         """The denoising threshold on the held-out validation episodes, and each of the parent's signals
         that calibrates on demonstrations alone; signals with trained models are not carried."""
         from policy.calibrate import calibrate
+        from policy.signal_data import demo_data
         from policy.signals import load_signal, save_signal
-        from policy.signals.data import demo_data
         from policy.uncertainty import UncertaintyConfig
 
         parent_cal = load_calibration(parent_dir) or {}

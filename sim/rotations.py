@@ -34,10 +34,6 @@ def quat_to_rot6d(quat_xyzw: np.ndarray) -> np.ndarray:
     return mat_to_rot6d(Rotation.from_quat(quat_xyzw).as_matrix())
 
 
-def rot6d_to_quat(rot6d: np.ndarray) -> np.ndarray:
-    return Rotation.from_matrix(rot6d_to_mat(rot6d)).as_quat()
-
-
 def rot6d_to_rotvec(rot6d: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(rot6d_to_mat(rot6d)).as_rotvec()
 

@@ -15,8 +15,14 @@ import uvicorn
 from policy.checkpoint import save_calibration, save_policy
 from policy.config import DiffusionPolicyConfig
 from policy.diffusion_policy import DiffusionPolicy
-from server.app import create_app
+from service.app import create_app
 from sim.registry import make_task
+
+
+def state_equal(a: DiffusionPolicy, b: DiffusionPolicy) -> bool:
+    """Whether two policies hold the same weights, tensor for tensor."""
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
 
 
 def tiny_policy(task: str = "lift-cube") -> DiffusionPolicy:

@@ -1,7 +1,7 @@
 """The operator console: a viser server on an internal 127.0.0.1 port, one ``OperatorPanel`` per browser.
 
 ``Console`` is built in the service's lifespan with the fleet. Browsers reach it only through the
-service's WebSocket proxy (``server.api.console``), which adds a signed identity to each handshake;
+service's WebSocket proxy (``web.pages``), which adds a signed identity to each handshake;
 a connection without a valid one is closed before it gets anything but the theme. Nothing is added to
 viser's shared (server-level) scene or GUI: every browser has its own panel and scene, rebuilt when it
 reconnects. One thread ticks at the control rate: it snapshots the fleet once (``FleetSnapshot``) and

@@ -1,6 +1,6 @@
 """The console's WebSocket proxy: a browser's viser connection, relayed to the internal viser server.
 
-The service's route (``server.api.console``) checks the session and the ``Origin`` first; ``relay``
+The service's route (``web.pages``) checks the session and the ``Origin`` first; ``relay``
 then connects upstream with viser's subprotocol and the signed identity, accepts the browser with the
 same subprotocol, and relays binary frames both ways until either side closes or ``alive`` says the
 session has ended (log-out, revoked token), checked every ``check_s`` seconds.

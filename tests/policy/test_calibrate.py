@@ -79,7 +79,8 @@ def test_validation_share_is_the_quantiles_complement(tmp_path):
 def test_rollout_check_measures_the_share_above_on_autonomous_rollouts():
     """On the policy's own rollouts through the one controller: every step scored, the share above the
     threshold counted, and a share over FLAG_SHARE flagged."""
-    from policy.calibrate import FLAG_SHARE, rollout_check
+    from policy.calibrate import FLAG_SHARE
+    from policy.evaluate import rollout_check
     from tests.helpers import tiny_policy
 
     policy = tiny_policy("lift-cube")

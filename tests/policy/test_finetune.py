@@ -5,13 +5,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from policy.checkpoint import state_equal
 from policy.finetune import FinetuneConfig, FinetuneDataError, TaskResult, finetune_policy, gate
 from policy.train import TrainConfig, TrainState, train_policy
 from storage import keys
 from storage.segments import SegmentWriter
 from storage.takeovers import load_takeovers
-from tests.helpers import tiny_policy
+from tests.helpers import state_equal, tiny_policy
 
 
 def _results(**rates):

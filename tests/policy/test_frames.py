@@ -6,13 +6,14 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from policy.checkpoint import CheckpointError, load_policy, save_policy, state_equal
+from policy.checkpoint import CheckpointError, load_policy, save_policy
 from policy.config import DiffusionPolicyConfig
 from policy.diffusion_policy import DiffusionPolicy
 from policy.frames import ObjectFrame
 from sim.rotations import mat_to_rot6d
 from sim.tasks.lift import LIFT_OBS, LIFT_WORKSPACE
 from storage import keys
+from tests.helpers import state_equal
 
 SL = LIFT_OBS.slices()
 FRAME = ObjectFrame.from_obs_spec(LIFT_OBS)

@@ -4,13 +4,14 @@ import numpy as np
 import pytest
 import torch
 
-from policy.checkpoint import CheckpointError, load_policy, save_policy, state_equal
+from policy.checkpoint import CheckpointError, load_policy, save_policy
 from policy.config import DiffusionPolicyConfig
 from policy.diffusion import NoiseSchedule
 from policy.diffusion_policy import DiffusionPolicy
 from policy.train import TrainConfig, train_policy
 from sim.tasks.lift import LIFT_OBS
 from storage import keys
+from tests.helpers import state_equal
 
 OBS_DIM = 7
 

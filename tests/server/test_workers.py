@@ -6,9 +6,9 @@ import time
 import numpy as np
 import pytest
 
-from server.pool_workers import PoolFactory
 from server.settings import Settings
 from server.workers import WORKERS, InProcessWorker, Priority, ProcessWorker, WorkerFault, wait_any
+from server.workers.pool import PoolFactory
 from sim.frame import RobotFrame
 from tests.helpers import KinematicTask
 

@@ -1,0 +1,31 @@
+"""Robot workers: how the fleet talks to its robots.
+
+- ``base``: the ``RobotWorker`` contract, ``WorkerFault``, ``Priority``, ``wait_any``.
+- ``process``: ``ProcessWorker``, one simulated robot per spawned process.
+- ``in_process``: ``InProcessWorker``, the robot's task stepped in the caller's thread.
+- ``pool``: ``PoolWorker``, several robots per process, so one wake-up serves several robots' steps
+  (a process per robot spends much of a small machine's CPU switching between them).
+- ``registry``: ``WORKERS``, the back ends the settings' ``worker`` name selects from.
+"""
+
+from server.workers.base import Priority, RobotWorker, WorkerFactory, WorkerFault, wait_any
+from server.workers.in_process import InProcessWorker, in_process_workers
+from server.workers.pool import PoolFactory, PoolWorker
+from server.workers.process import ProcessWorker, process_workers
+from server.workers.registry import WORKERS, pool_workers
+
+__all__ = [
+    "WORKERS",
+    "InProcessWorker",
+    "PoolFactory",
+    "PoolWorker",
+    "Priority",
+    "ProcessWorker",
+    "RobotWorker",
+    "WorkerFactory",
+    "WorkerFault",
+    "in_process_workers",
+    "pool_workers",
+    "process_workers",
+    "wait_any",
+]

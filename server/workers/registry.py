@@ -1,0 +1,30 @@
+"""The worker back ends by name: the settings' ``worker`` selects the factory built from the settings.
+
+Kept apart from the contract (``server.workers.base``), so that a back end imports the contract and
+the registry imports the back ends, and nothing imports back up. A new back end (Ray actors, say)
+is a module implementing ``RobotWorker`` and one line here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from server.workers.base import WorkerFactory
+from server.workers.in_process import in_process_workers
+from server.workers.pool import PoolFactory
+from server.workers.process import process_workers
+
+if TYPE_CHECKING:
+    from server.settings import Settings
+
+
+def pool_workers(niceness: int, robots_per_process: int) -> WorkerFactory:
+    return PoolFactory(niceness, robots_per_process)
+
+
+WORKERS: dict[str, Callable[[Settings], WorkerFactory]] = {
+    "process": lambda s: process_workers(s.worker_niceness),
+    "pool": lambda s: pool_workers(s.worker_niceness, s.robots_per_process),
+    "in-process": lambda s: in_process_workers(),
+}

@@ -1,0 +1,35 @@
+"""``hitl bench fleet``'s measurement on a real fleet with the pool back end: steps, latency, memory."""
+
+import os
+
+import numpy as np
+
+from bench.fleet import fleet_goals, fleet_throughput
+
+
+def test_a_pooled_fleet_steps_every_robot_and_reports_its_memory(tmp_path):
+    out = fleet_throughput("lift-cube", 3, 2.0, tmp_path / "var", worker="pool", robots_per_process=2)
+    assert out["worker"] == "pool" and out["worker_processes"] == 2  # 3 robots, 2 per process
+    assert out["env_steps_per_s"] > 0 and out["ticks_per_s"] > 0
+    assert out["commands_applied"] > 0  # robot 0 is teleoperated through the fleet's mailbox
+    assert out["server_rss_mb"] > out["server_rss_before_fleet_mb"] > 0
+    assert out["worker_peak_rss_mb"] > 0 and out["workers_rss_mb_per_robot"] > 0
+    assert out["workers_peak_rss_mb_per_robot"] >= out["workers_rss_mb_per_robot"] * 0.99  # a peak is no lower
+    assert np.isclose(out["server_peak_rss_mb_per_robot"] * 3, out["server_peak_rss_mb"])
+    assert out["workers_cpu_ms_per_env_step"] > 0
+    # the physics processes' CPU only: together with the loop's, no more than the machine's cores give
+    cores = os.cpu_count() or 1
+    used = (out["workers_cpu_ms_per_env_step"] + out["loop_cpu_ms_per_env_step"]) * out["env_steps_per_s"] / 1e3
+    assert used <= cores * 1.05
+
+
+def test_the_goals_say_per_back_end_whether_this_run_met_them():
+    rows = [
+        {"robots": 8, "worker": "process", "share_of_raw": 0.9},  # not the goal's size: not judged
+        {"robots": 16, "worker": "process", "share_of_raw": 0.49},
+        {"robots": 16, "worker": "pool", "share_of_raw": 0.7},
+    ]
+    goals = fleet_goals(rows, {"process": 5.2, "pool": 0.4})
+    assert goals["share_of_raw_at_16"] == 0.7 and goals["share_of_raw_at_16_met"] == {"process": False, "pool": True}
+    assert goals["server_mb_per_added_robot_met"] == {"process": False, "pool": True}
+    assert fleet_goals(rows[:1], {})["share_of_raw_at_16_met"] == {}  # no fleet of 16: nothing claimed

@@ -1,0 +1,31 @@
+"""The operator console as an extension of the service (``server.app.ServiceExtension``): its pages and
+socket (``web.pages``), the browser sessions they share, and the ``Console`` that ticks beside the fleet
+when the settings turn it on. ``service.app`` mounts it."""
+
+from __future__ import annotations
+
+from fastapi import FastAPI
+
+from server.fleet import Fleet
+from web import pages
+from web.console import Console
+from web.sessions import ConsoleSessions
+
+
+class ConsoleExtension:
+    """``app.state.console_sessions`` always (the log-in pages answer even with the console off) and
+    ``app.state.console``: the running ``Console``, or None when ``settings.console`` is off."""
+
+    router = pages.router
+
+    def start(self, app: FastAPI, fleet: Fleet) -> None:
+        settings = app.state.settings
+        app.state.console_sessions = ConsoleSessions()
+        app.state.console = None
+        if settings.console:
+            app.state.console = Console(fleet, settings.control_hz)
+            app.state.console.start()
+
+    def stop(self, app: FastAPI) -> None:
+        if app.state.console is not None:
+            app.state.console.stop()
