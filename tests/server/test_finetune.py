@@ -295,7 +295,7 @@ def test_job_summary_is_json(store):
 def test_the_gate_promotes_a_better_candidate_and_keeps_a_worse_one(store, monkeypatch, better):
     """Evaluation replaced by fixed results, so both of the gate's outcomes run end to end."""
     from policy.finetune import TaskResult
-    from server import finetune_job
+    from server import finetune_stages
 
     sessions, data_dir, parent = store
     calls = []
@@ -306,7 +306,7 @@ def test_the_gate_promotes_a_better_candidate_and_keeps_a_worse_one(store, monke
         nut = 2 if first else (8 if better else 1)
         return {t: TaskResult(t, 10, 9 if t == TASK else nut, seed) for t in tasks}
 
-    monkeypatch.setattr(finetune_job, "evaluate", fake_evaluate)
+    monkeypatch.setattr(finetune_stages, "evaluate", fake_evaluate)
     [summary] = FinetuneRunner(sessions, data_dir, progress=False).run(JobRequest(policy="lift-cube", config=TINY))
     child = registry.resolve(sessions, summary["version"])
     rows = {r.ref: r for r in registry.versions(sessions, "lift-cube")}
