@@ -4,7 +4,8 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs console-docs frame-docs clean
+.PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs console-docs frame-docs \
+	finetune-docs finetune-recipe-docs hitl-dev-docs api-docs finetune-load-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -34,9 +35,10 @@ lint: install
 docs: install
 	$(BIN)/hitl experts --episodes 50 --out docs/experts.md
 
-# Regenerates docs/sanity.md, docs/separation-lift.json, docs/figures/ and docs/bench-uncertainty.json from
-# scratch: demonstrations, three policies, calibration (with its rollout check), the sanity checks, the
-# signals' separation of shifted states, figures and the benchmark (about 2 h on 2 cores).
+# Regenerates docs/results/policy/ (the sanity report, sanity.md and sanity.json, and where U peaks per task),
+# docs/results/signals/separation-lift.json, the figures in docs/figures/ and docs/results/serving/uncertainty.json
+# from scratch: demonstrations, three policies, calibration (with its rollout check), the sanity checks, the
+# signals' separation of shifted states, figures and the uncertainty cost (about 2 h on 2 cores).
 policy-docs: install
 	$(BIN)/hitl demos --task lift-cube --episodes 200 --pos-noise 0.01 --rot-noise 0.15 --out data/demos/lift-cube-dart --quiet
 	$(BIN)/hitl demos --task cup-stack --episodes 200 --pos-noise 0.01 --rot-noise 0.15 --out data/demos/cup-stack-dart --quiet
@@ -47,17 +49,18 @@ policy-docs: install
 	$(BIN)/hitl calibrate --policy runs/lift-cube --data data/demos/lift-cube-dart
 	$(BIN)/hitl calibrate --policy runs/cup-stack --data data/demos/cup-stack-dart
 	$(BIN)/hitl calibrate --policy runs/open-drawer --data data/demos/open-drawer-dart
-	$(BIN)/hitl report sanity --lift runs/lift-cube --cup runs/cup-stack --drawer runs/open-drawer --out docs/sanity.md
+	$(BIN)/hitl report sanity --lift runs/lift-cube --cup runs/cup-stack --drawer runs/open-drawer --out docs/results/policy/sanity.md --threads 1 --quiet
 	for s in output-variance diff-dagger thrifty hula-offline; do $(BIN)/hitl train-signal --policy runs/lift-cube --signal $$s --data data/demos/lift-cube-dart --quiet || exit 1; done
-	$(BIN)/hitl report separation --policy runs/lift-cube --out docs/separation-lift.json
-	$(BIN)/hitl plot uncertainty --policy runs/lift-cube --task lift-hammer --episodes 8 --out docs/figures
-	$(BIN)/hitl plot uncertainty --policy runs/cup-stack --task cup-stack --episodes 4 --out docs/figures
-	$(BIN)/hitl plot uncertainty --policy runs/open-drawer --task open-drawer --episodes 8 --out docs/figures
-	$(BIN)/hitl bench uncertainty --policy runs/lift-cube --task lift-hammer --threads 1 --quiet > docs/bench-uncertainty.json
+	$(BIN)/hitl report separation --policy runs/lift-cube --out docs/results/signals/separation-lift.json --quiet
+	$(BIN)/hitl plot uncertainty --policy runs/lift-cube --task lift-hammer --episodes 8 --out docs/figures --report docs/results/policy/lift-hammer-uncertainty.json --quiet
+	$(BIN)/hitl plot uncertainty --policy runs/cup-stack --task cup-stack --episodes 4 --out docs/figures --report docs/results/policy/cup-stack-uncertainty.json --quiet
+	$(BIN)/hitl plot uncertainty --policy runs/open-drawer --task open-drawer --episodes 8 --out docs/figures --report docs/results/policy/open-drawer-uncertainty.json --quiet
+	$(BIN)/hitl bench uncertainty --policy runs/lift-cube --task lift-hammer --threads 1 --quiet > docs/results/serving/uncertainty.json
 	for p in lift-cube cup-stack open-drawer; do rm -rf policies/$$p && mkdir -p policies/$$p && cp runs/$$p/model.safetensors runs/$$p/config.json runs/$$p/calibration.json policies/$$p/ || exit 1; done
 
-# Regenerates docs/signals.md's inputs: every assistance signal trained and calibrated next to the
-# lift policy (and a chunked lift policy for stac), their cost, and an assisted comparison run.
+# Regenerates docs/signals.md's inputs (docs/results/signals/): every assistance signal trained and calibrated next
+# to the lift policy (and a chunked lift policy for stac), an assisted comparison run, and the serving cost of the
+# signals and of the fleet (docs/results/serving/signals.json, fleet.json; docs/benchmarks/serving.md).
 # Needs runs/lift-cube and data/demos/lift-cube-dart from `make policy-docs` (about 1 h on 2 cores).
 # The chunked policy trains on 400 lift demonstrations: seeds 200-399 are added to the folder first
 # (the lift policy's own split is recorded by name, so its signals still use only its 200).
@@ -67,49 +70,124 @@ signals-docs: install
 	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart --out runs/lift-cube-c8 --action-horizon 8 --n-action-steps 4 --steps 8000 --threads 2
 	for s in $(SIGNALS_C1); do $(BIN)/hitl train-signal --policy runs/lift-cube --signal $$s --data data/demos/lift-cube-dart --quiet || exit 1; done
 	for s in stac denoising; do $(BIN)/hitl train-signal --policy runs/lift-cube-c8 --signal $$s --data data/demos/lift-cube-dart --quiet || exit 1; done
-	$(BIN)/hitl report separation --policy runs/lift-cube-c8 --signals stac denoising --out docs/separation-lift-c8.json
-	$(BIN)/hitl rollout --policy runs/lift-cube-c8 --task lift-cube --episodes 20 --envs 8 --no-uncertainty --json --quiet > docs/rollout-lift-cube-c8.json
-	$(BIN)/hitl bench signals --policy runs/lift-cube --stac-policy runs/lift-cube-c8 --task lift-hammer --quiet > docs/bench-signals.json
-	$(BIN)/hitl assist --policy runs/lift-cube --task lift-hammer --driver denoising --shadow all --episodes 8 --plot docs/figures --quiet > docs/assist-lift-hammer.json
-	$(BIN)/hitl assist --policy runs/lift-cube-c8 --task lift-hammer --driver stac --shadow denoising --episodes 8 --quiet > docs/assist-lift-hammer-stac.json
-	$(BIN)/hitl bench fleet --robots 1,4,8,16 --seconds 15 --quiet > docs/bench-fleet.json
+	$(BIN)/hitl report separation --policy runs/lift-cube-c8 --signals stac denoising --out docs/results/signals/separation-lift-c8.json --quiet
+	$(BIN)/hitl rollout --policy runs/lift-cube-c8 --task lift-cube --episodes 20 --envs 8 --no-uncertainty --json --quiet > docs/results/signals/rollout-lift-cube-c8.json
+	$(BIN)/hitl bench signals --policy runs/lift-cube --stac-policy runs/lift-cube-c8 --task lift-hammer --quiet > docs/results/serving/signals.json
+	$(BIN)/hitl assist --policy runs/lift-cube --task lift-hammer --driver denoising --shadow all --episodes 8 --plot docs/figures --quiet > docs/results/signals/assist-lift-hammer.json
+	$(BIN)/hitl assist --policy runs/lift-cube-c8 --task lift-hammer --driver stac --shadow denoising --episodes 8 --quiet > docs/results/signals/assist-lift-hammer-stac.json
+	$(BIN)/hitl bench fleet --robots 1,4,8,16 --seconds 15 --quiet > docs/results/serving/fleet.json
 
-# docs/benchmarks.md: the human-in-the-loop benchmark on the paper's protocol (every registered signal, the
-# five problem tasks, 20 seeded episodes each, a threshold sweep) and its figures in docs/img/. Needs the
-# policies and signals of `make policy-docs`; each policy's `spread` calibration is made here. Cells are
-# cached under runs/bench-hitl, so a rerun only computes what changed (from scratch: several hours on 2
-# cores; the sweep of cup-stack, 400-step episodes, is most of it). Then one task through the service.
+# docs/benchmarks/hitl.md: the human-in-the-loop benchmark on the paper's protocol (every registered signal, the
+# five problem tasks, 20 seeded episodes each, a threshold sweep), its ablations and their figures in docs/figures/;
+# JSON in docs/results/hitl/. Needs the policies and signals of `make policy-docs`; each policy's `spread`
+# calibration is made here. Cells are cached under runs/bench-hitl, so a rerun only computes what changed (from
+# scratch: several hours on 2 cores; the sweep of cup-stack, 400-step episodes, is most of it). Then one task
+# through the service.
 BENCH_SIGNALS := denoising output-variance diff-dagger thrifty stac hula-offline spread denoising:directions=unit random full-teleop
 # the paper's ablations (radius r, alpha) and ours (samples S, criterion), on the paper's metric; the back end
-# is compared by agreement and cost in docs/uncertainty.md (sklearn costs 35x the torch fit per robot-step)
+# is compared by agreement and cost in docs/benchmarks/serving.md (sklearn costs 35x the default fit per robot-step)
 ABLATIONS := denoising denoising:radius=0.01 denoising:radius=0.03 denoising:radius=0.1 \
 	denoising:alpha=0.01 denoising:alpha=0.05 denoising:alpha=0.3 denoising:alpha=0.5 \
 	denoising:num_samples=32 denoising:num_samples=512 denoising:criterion=likelihood
 bench-docs: install
 	for p in lift-cube cup-stack open-drawer; do $(BIN)/hitl train-signal --policy runs/$$p --signal spread --data data/demos/$$p-dart --quiet || exit 1; done
 	for p in cup-stack open-drawer; do for s in output-variance diff-dagger thrifty hula-offline; do $(BIN)/hitl train-signal --policy runs/$$p --signal $$s --data data/demos/$$p-dart --quiet || exit 1; done; done
-	$(BIN)/hitl bench hitl --policy-root runs --signals $(BENCH_SIGNALS) --report docs/benchmarks.md --figures docs/img --json > docs/bench-hitl.json
-	$(BIN)/hitl bench hitl --policy-root runs --section ablations --report docs/benchmarks.md --figures docs/img \
+	$(BIN)/hitl bench hitl --policy-root runs --signals $(BENCH_SIGNALS) --report docs/benchmarks/hitl.md --figures docs/figures \
+		--json --quiet > docs/results/hitl/main.json
+	$(BIN)/hitl bench hitl --policy-root runs --section ablations --report docs/benchmarks/hitl.md --figures docs/figures \
 		--tasks lift-hammer cup-stack open-drawer --false-alarm-task none --episodes 10 --quantiles 0.9 0.5 0.25 \
-		--signals $(ABLATIONS) --json > docs/bench-hitl-ablations.json
-	$(BIN)/hitl bench hitl-service --task open-drawer --policy runs/open-drawer --signal spread --episodes 6 --json > docs/bench-hitl-service.json
+		--signals $(ABLATIONS) --json --quiet > docs/results/hitl/ablations.json
+	$(BIN)/hitl bench hitl-service --task open-drawer --policy runs/open-drawer --signal spread --episodes 6 > docs/results/hitl/service.json
 	for p in lift-cube cup-stack open-drawer; do mkdir -p policies/$$p/signals/spread && cp runs/$$p/signals/spread/config.json policies/$$p/signals/spread/ || exit 1; done
 
-# The demo fleet served with the operator bot helping, 20 minutes per hand-back mode (docs/service.md, "The loop").
+# docs/spread.md, "How it was chosen": the development runs on seeds 2000-2007 (docs/results/hitl/dev/), the
+# commands recorded in each file's provenance (`--raw`, a scratch copy of every cell, left out). The first three ran
+# on the bundled policies when `spread` meant its k = 30 configuration; a rerun measures today's `spread`. The
+# last needs the policies and signals of `make bench-docs`. Cells are cached under runs/bench-hitl-dev.
+hitl-dev-docs: install
+	$(BIN)/hitl bench hitl --tasks lift-hammer --signals denoising denoising:directions=unit spread:novelty_weight=0 \
+		spread:novelty_weight=0,noise_step=10 spread:novelty_weight=0,noise_step=60 spread:novelty_weight=0,dims=pos spread \
+		thrifty full-teleop --quantiles 0.5 0.75 0.9 0.95 0.98 --episodes 8 --seed 2000 --reference-episodes 8 \
+		--cache runs/bench-hitl-dev --jobs 2 --json > docs/results/hitl/dev/lift-hammer.json
+	$(BIN)/hitl bench hitl --tasks lift-hammer --signals denoising denoising:directions=unit denoising:noise_step=10 \
+		denoising:center=action spread:novelty_weight=0 spread:novelty_weight=0,noise_step=10 \
+		spread:novelty_weight=0,noise_step=60 spread thrifty random full-teleop --quantiles 0.5 0.75 0.9 0.95 0.98 \
+		--episodes 8 --seed 2000 --reference-episodes 8 --cache runs/bench-hitl-dev --jobs 1 --no-shadow --json \
+		> docs/results/hitl/dev/lift-hammer-first.json
+	$(BIN)/hitl bench hitl --tasks cup-stack open-drawer --false-alarm-task none --signals denoising denoising:directions=unit \
+		spread:novelty_weight=0 spread:novelty_weight=0,noise_step=10 spread:novelty_weight=0,noise_step=60 spread thrifty \
+		hula-offline random full-teleop --quantiles 0.25 0.5 0.75 0.9 0.95 0.98 --episodes 8 --seed 2000 \
+		--reference-episodes 8 --cache runs/bench-hitl-dev --jobs 2 --json > docs/results/hitl/dev/cup-stack-open-drawer.json
+	$(BIN)/hitl bench hitl --policy-root runs --tasks lift-hammer cup-stack open-drawer --false-alarm-task none \
+		--signals spread output-variance --quantiles 0.25 0.5 0.75 0.9 0.95 0.98 --episodes 8 --seed 2000 \
+		--reference-episodes 8 --cache runs/bench-hitl-dev --jobs 2 --json > docs/results/hitl/dev/spread-vs-output-variance.json
+
+# docs/benchmarks/service.md, "The loop": the demo fleet served with the operator bot helping, 20 minutes per
+# hand-back mode.
 loop-docs: install
-	$(BIN)/hitl bench loop --seconds 1200 --mode continuous --quiet > docs/loop-continuous.json
-	$(BIN)/hitl bench loop --seconds 1200 --mode budgeted --quiet > docs/loop-budgeted.json
+	$(BIN)/hitl bench loop --seconds 1200 --mode continuous --quiet > docs/results/service/loop-continuous.json
+	$(BIN)/hitl bench loop --seconds 1200 --mode budgeted --quiet > docs/results/service/loop-budgeted.json
 
-# The console's pictures (README, docs/console.md) and its cost: 4 protocol clients, then 4 Chromium browsers (~25 min).
-# The benchmark exits 1 when a goal is not met; its JSON says which, and is kept.
+# docs/benchmarks/service.md, "API load": the real service, 16 robots, 50 REST/WebSocket clients (about 1 min).
+# Quote only runs with `other_processes` near 0: the machine's other load is in the JSON.
+api-docs: install
+	$(BIN)/hitl bench api --quiet > docs/results/service/api.json
+
+# docs/benchmarks/service.md, "What a fine-tuning job costs the fleet": the service's own launcher runs a job beside
+# 8 and 16 autonomous robots, at nice 19 with and without SCHED_IDLE (about 2 min each).
+finetune-load-docs: install
+	$(BIN)/hitl bench finetune-load --robots 8 --json --quiet > docs/results/service/finetune-load-8.json
+	$(BIN)/hitl bench finetune-load --robots 16 --json --quiet > docs/results/service/finetune-load-16.json
+	$(BIN)/hitl bench finetune-load --robots 16 --no-idle-priority --json --quiet > docs/results/service/finetune-load-16-nice.json
+
+# The console's pictures (README, docs/console.md) and its cost (docs/benchmarks/console.md): 4 protocol clients,
+# then 4 Chromium browsers (~25 min). The benchmark exits 1 when a goal is not met; its JSON says which, and is kept.
 console-docs: install
-	$(BIN)/hitl docs screenshots --out docs/img
-	$(BIN)/hitl bench console --clients wire --out docs/bench-console-wire.json --quiet || true
-	$(BIN)/hitl bench console --out docs/bench-console-chromium.json --quiet || true
+	$(BIN)/hitl docs screenshots --out docs/figures
+	$(BIN)/hitl bench console --clients wire --out docs/results/console/wire.json --quiet || true
+	$(BIN)/hitl bench console --out docs/results/console/chromium.json --quiet || true
 
-# The object-frame lift policy (docs/policy.md, "The object frame") and its fine-tuning points (docs/benchmarks.md,
-# "finetune-object-frame", "finetune-stall", "finetune-stall-successful-tail"). It trains on the same 200 demonstrations as runs/lift-cube: seeds 0-199
-# of data/demos/lift-cube-dart, linked into their own folder (signals-docs adds 200 more). About 1.5 h on 2 cores.
+# docs/benchmarks/finetune.md, the world-frame lift policy (policies/lift-cube, bundled): fine-tuning with the
+# widened observation range, the 4000-sample upper bound, large K, longer and budgeted takeovers, the steps around
+# the grasp and where the fine-tuned policies close the gripper. JSON in docs/results/finetune/, figures in
+# docs/figures/. Points are cached under runs/bench-finetune (from scratch: about 1.5 h on 2 cores).
+finetune-docs: install
+	$(BIN)/hitl bench finetune --section finetune-widened --report docs/benchmarks/finetune.md --json --quiet \
+		> docs/results/finetune/widened.json
+	$(BIN)/hitl bench finetune --sources full-trajectory --counts 4000 --section finetune-upper-widened \
+		--report docs/benchmarks/finetune.md --json --quiet > docs/results/finetune/upper-widened.json
+	$(BIN)/hitl bench finetune --sources full-trajectory takeover:spread --counts 600 1200 --section finetune-large-k-widened \
+		--report docs/benchmarks/finetune.md --json --quiet > docs/results/finetune/large-k-widened.json
+	$(BIN)/hitl bench finetune --sources takeover:denoising takeover:random --counts 50 100 200 --return-after 30 \
+		--section finetune-return-after-30-widened --report docs/benchmarks/finetune.md --json --quiet \
+		> docs/results/finetune/return-after-30-widened.json
+	$(BIN)/hitl bench finetune --hand-back budgeted --sources takeover:spread --counts 100 --episodes 5 \
+		--section finetune-budgeted-widened --report docs/benchmarks/finetune.md --json --quiet \
+		> docs/results/finetune/budgeted-widened.json
+	$(BIN)/hitl bench finetune --sources expert:grasp full-trajectory --counts 20 50 100 --section finetune-grasp-window \
+		--report docs/benchmarks/finetune.md --json --quiet > docs/results/finetune/grasp-window.json
+	$(BIN)/hitl bench finetune --sources takeover:spread full-trajectory expert:grasp --counts 100 \
+		--section finetune-first-close --report docs/benchmarks/finetune.md --json --quiet \
+		> docs/results/finetune/first-close.json
+
+# docs/benchmarks/finetune.md, "The job's recipe": one setting of FinetuneConfig changed at a time, K = 100 on the
+# world-frame lift policy (about 20 min; figures in docs/figures/finetune-recipe/).
+finetune-recipe-docs: install
+	for r in 0.8 1.0; do $(BIN)/hitl bench finetune --sources full-trajectory --counts 100 --ratio $$r --section ratio-$$r \
+		--report docs/benchmarks/finetune.md --figures docs/figures/finetune-recipe --json --quiet \
+		> docs/results/finetune/ratio-$$r.json || exit 1; done
+	for lr in 2e-3 1e-4; do $(BIN)/hitl bench finetune --sources full-trajectory --counts 100 --lr $$lr --section lr-$$lr \
+		--report docs/benchmarks/finetune.md --figures docs/figures/finetune-recipe --json --quiet \
+		> docs/results/finetune/lr-$$lr.json || exit 1; done
+	for n in 250 1500; do $(BIN)/hitl bench finetune --sources takeover:spread --counts 100 --steps $$n --section steps-$$n \
+		--report docs/benchmarks/finetune.md --figures docs/figures/finetune-recipe --json --quiet \
+		> docs/results/finetune/steps-$$n.json || exit 1; done
+
+# The object-frame lift policy (docs/policy.md, "The object frame"), the stall signal's assisted runs
+# (docs/results/signals/assist-stall-*.json) and the fine-tuning points of docs/benchmarks/finetune.md that use
+# them: finetune-object-frame, finetune-stall and its strides, the current result finetune-stall-successful-tail
+# and its ablations at K = 100. It trains on the same 200 demonstrations as runs/lift-cube: seeds 0-199 of
+# data/demos/lift-cube-dart, linked into their own folder (signals-docs adds 200 more). About 1.5 h on 2 cores.
 frame-docs: install
 	mkdir -p data/demos/lift-cube-dart-200
 	for i in $$(seq -f "%06g" 0 199); do ln -sf ../lift-cube-dart/lift-cube_seed$$i.mcap data/demos/lift-cube-dart-200/ || exit 1; done
@@ -117,28 +195,28 @@ frame-docs: install
 	$(BIN)/hitl calibrate --policy runs/lift-cube-object --data data/demos/lift-cube-dart-200
 	$(BIN)/hitl train-signal --policy runs/lift-cube-object --signal spread --data data/demos/lift-cube-dart-200 --quiet
 	$(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:spread full-trajectory expert:grasp \
-		--counts 20 50 100 --cache runs/bench-finetune-obj --section finetune-object-frame --report docs/benchmarks.md \
-		--figures docs/img --json --quiet --threads 2 > docs/bench-finetune-object-frame.json
+		--counts 20 50 100 --cache runs/bench-finetune-obj --section finetune-object-frame --report docs/benchmarks/finetune.md \
+		--figures docs/figures --json --quiet --threads 2 > docs/results/finetune/object-frame.json
 	$(BIN)/hitl train-signal --policy runs/lift-cube-object --signal stall --data data/demos/lift-cube-dart-200 --quiet
 	for t in lift-cube lift-nut lift-hammer lift-hook; do $(BIN)/hitl assist --policy runs/lift-cube-object --task $$t \
 		--driver stall --shadow spread --mode continuous --hand-back-when-held --cooldown 10 --episodes 16 --seed 70000 \
-		--json --quiet > docs/assist-stall-$$t.json || exit 1; done
+		--json --quiet > docs/results/signals/assist-stall-$$t.json || exit 1; done
 	$(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:stall full-trajectory --counts 20 50 100 \
-		--hand-back operator --cache runs/bench-finetune-obj --section finetune-stall --report docs/benchmarks.md \
-		--figures docs/img --json --quiet --threads 2 > docs/bench-finetune-stall.json
+		--hand-back operator --cache runs/bench-finetune-obj --section finetune-stall --report docs/benchmarks/finetune.md \
+		--figures docs/figures --json --quiet --threads 2 > docs/results/finetune/stall.json
 	for s in 2 3; do $(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:stall full-trajectory \
 		--counts 100 --hand-back operator --stride $$s --cache runs/bench-finetune-obj --section finetune-stall-stride-$$s \
-		--report docs/benchmarks.md --figures docs/img --json --quiet --threads 2 > docs/bench-finetune-stall-stride-$$s.json \
-		|| exit 1; done
+		--report docs/benchmarks/finetune.md --figures docs/figures --json --quiet --threads 2 \
+		> docs/results/finetune/stall-stride-$$s.json || exit 1; done
 	$(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:stall full-trajectory --counts 20 50 100 \
 		--hand-back operator --successful-only --takeover-tail 33 --repeats 3 --cache runs/bench-finetune-obj \
-		--section finetune-stall-successful-tail --report docs/benchmarks.md --figures docs/img --json --quiet --threads 2 \
-		> docs/bench-finetune-stall-successful-tail.json
+		--section finetune-stall-successful-tail --report docs/benchmarks/finetune.md --figures docs/figures --json --quiet \
+		--threads 2 > docs/results/finetune/stall-successful-tail.json
 	ft="$(BIN)/hitl bench finetune --policy runs/lift-cube-object --sources takeover:stall full-trajectory --counts 100 \
 		--hand-back operator --repeats 3 --cache runs/bench-finetune-obj --json --quiet --threads 2" && \
-		$$ft --takeover-tail 33 > docs/bench-finetune-stall-tail-33.json && \
-		$$ft --successful-only > docs/bench-finetune-stall-successful.json && \
-		for n in 20 50; do $$ft --successful-only --takeover-tail $$n > docs/bench-finetune-stall-successful-tail-$$n.json \
+		$$ft --takeover-tail 33 > docs/results/finetune/stall-tail-33.json && \
+		$$ft --successful-only > docs/results/finetune/stall-successful.json && \
+		for n in 20 50; do $$ft --successful-only --takeover-tail $$n > docs/results/finetune/stall-successful-tail-$$n.json \
 		|| exit 1; done
 
 clean:

@@ -1,4 +1,4 @@
-"""Figures for docs/: the uncertainty timeline and the denoising vector field."""
+"""Figures for docs/figures/: the uncertainty timeline and the denoising vector field."""
 
 from __future__ import annotations
 

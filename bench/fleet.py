@@ -38,7 +38,7 @@ from server.procstats import memory_mb, processes_cpu_seconds, worker_pids
 from server.settings import RobotGroup, Settings
 from sim.spaces import TeleopCommand
 
-GOAL_SHARE_OF_RAW_AT_16 = 0.7  # fleet env steps/s against raw physics at 16 robots (docs/performance.md)
+GOAL_SHARE_OF_RAW_AT_16 = 0.7  # fleet env steps/s against raw physics at 16 robots (docs/benchmarks/serving.md)
 GOAL_SERVER_MB_PER_ROBOT = 5.0  # the server's resident memory growth per added robot
 
 

@@ -1,4 +1,4 @@
-"""``hitl report sanity``: the paper's sanity checks, run and written to docs/ as markdown."""
+"""``hitl report sanity``: the paper's sanity checks, run and written as markdown (docs/results/policy/sanity.md)."""
 
 from __future__ import annotations
 

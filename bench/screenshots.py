@@ -1,4 +1,4 @@
-"""``hitl docs screenshots``: the console in Debian's headless Chromium, on the demo fleet, into ``docs/img``.
+"""``hitl docs screenshots``: the console in Debian's headless Chromium, on the demo fleet, into ``docs/figures``.
 
 The service is the real one (``create_app`` under uvicorn on 127.0.0.1, the demo configuration with its
 own data folder), logged in through the console's form with a fresh operator token. It waits for a

@@ -34,7 +34,7 @@ from policy.gmm_numba import fit_all
 from policy.signals.base import SignalInput
 from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator, mixture_variance, mode_divergence
 
-GOAL_MS_AT_16 = 2.5  # policy + uncertainty per robot-step at fleet 16 (docs/performance.md)
+GOAL_MS_AT_16 = 2.5  # policy + uncertainty per robot-step at fleet 16 (docs/benchmarks/serving.md)
 GOAL_UNCERTAINTY_OVER_DDIM = 0.25  # the accelerator goal: uncertainty <= 0.25 x one DDIM action sample
 REFERENCE_SAMPLES = 128  # the paper's probe size S, the faithful configuration's
 FLAGGED_QUANTILE = 0.95  # the calibrated threshold's quantile: the states a signal would ask on

@@ -163,7 +163,7 @@ def register(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--no-shadow", action="store_true", help="skip the shadow runs (false alarms, diagnostics)")
     q.add_argument("--raw", type=Path, default=None, help="also write every cell's raw result here")
     q.add_argument("--report", type=Path, default=None, help="write the markdown report here")
-    q.add_argument("--figures", type=Path, default=Path("docs/img"), help="figures folder for --report")
+    q.add_argument("--figures", type=Path, default=Path("docs/figures"), help="figures folder for --report")
     q.add_argument("--section", default="main", help="the report section this run writes (ablations apart)")
     q.add_argument("--json", action="store_true", help="one line of JSON")
     q.add_argument("--quiet", action="store_true")
@@ -227,7 +227,7 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
     if args.report:
         section = args.section or ("finetune-quick" if args.quick else "finetune")
         figure = plot(summary, Path(args.figures) / f"{section}.png")
-        body = markdown(result, summary, figure, Path(args.report), command)
+        body = markdown(result, summary, figure, Path(args.report), command, section)
         replace_section(Path(args.report), section, body)
     print(json.dumps(result, indent=None if args.json else 2))
     return 0
@@ -292,8 +292,10 @@ def register_finetune(bench: argparse._SubParsersAction) -> None:
     )
     q.add_argument("--section", default=None, help="the report section's name (default finetune / finetune-quick)")
     q.add_argument("--cache", default="runs/bench-finetune")
-    q.add_argument("--report", default=None, help="write the table into this markdown file (docs/benchmarks.md)")
-    q.add_argument("--figures", default="docs/img")
+    q.add_argument(
+        "--report", default=None, help="write the table into this markdown file (docs/benchmarks/finetune.md)"
+    )
+    q.add_argument("--figures", default="docs/figures", help="figures folder for --report")
     q.add_argument("--threads", type=int, default=1)
     q.add_argument("--json", action="store_true", help="compact JSON")
     q.add_argument("--quiet", action="store_true")

@@ -48,10 +48,10 @@ def _cmd_bench_console(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
     docs = sub.add_parser("docs", help="generate documentation assets").add_subparsers(dest="docs", required=True)
     p = docs.add_parser(
-        "screenshots", help="the console in headless Chromium on the demo fleet: docs/img/console-*.png"
+        "screenshots", help="the console in headless Chromium on the demo fleet: docs/figures/console-*.png"
     )
     p.add_argument("--config", type=Path, default=Path("configs/demo.toml"))
-    p.add_argument("--out", type=Path, default=Path("docs/img"))
+    p.add_argument("--out", type=Path, default=Path("docs/figures"))
     p.add_argument("--chromium", default="/usr/bin/chromium")
     p.set_defaults(func=_cmd_screenshots)
 
@@ -72,7 +72,9 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         help="chromium: real browsers on this machine; wire: viser protocol clients, no browser (the service's cost)",
     )
     q.add_argument("--chromium", default="/usr/bin/chromium")
-    q.add_argument("--out", type=Path, default=None, help="also write the JSON here (e.g. docs/bench-console.json)")
+    q.add_argument(
+        "--out", type=Path, default=None, help="also write the JSON here (e.g. docs/results/console/chromium.json)"
+    )
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_console)

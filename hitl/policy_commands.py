@@ -319,7 +319,9 @@ def _cmd_plot(args: argparse.Namespace) -> int:
             }
         )
     text = json.dumps(report, indent=2)
-    (out / f"{args.task}-uncertainty.json").write_text(text + "\n")
+    path = args.report or out / f"{args.task}-uncertainty.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text + "\n")
     print(text if args.json else f"wrote {timeline} and {field}")
     return 0
 
@@ -496,7 +498,7 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     _add_uncertainty_args(p)
     p.set_defaults(func=_cmd_calibrate)
 
-    p = sub.add_parser("plot", help="write figures to docs/")
+    p = sub.add_parser("plot", help="write figures to docs/figures/")
     what = p.add_subparsers(dest="figure", required=True)
     q = what.add_parser("uncertainty", help="U timeline against the threshold and the vector field at its peak")
     q.add_argument("--policy", required=True, type=Path)
@@ -504,13 +506,19 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     q.add_argument("--seed", type=int, default=1000)
     q.add_argument("--episodes", type=int, default=1, help="more episodes only add to the JSON report")
     q.add_argument("--ddim-steps", type=int, default=None)
-    q.add_argument("--out", type=Path, default=Path("docs/figures"))
-    q.add_argument("--json", action="store_true")
+    q.add_argument("--out", type=Path, default=Path("docs/figures"), help="the figures' folder")
+    q.add_argument("--json", action="store_true", help="print the per-episode report (peaks, steps above) as JSON")
+    q.add_argument(
+        "--report",
+        type=Path,
+        default=None,
+        help="where to write that report (default: OUT/TASK-uncertainty.json, beside the figures)",
+    )
     q.add_argument("--quiet", action="store_true")
     _add_uncertainty_args(q)
     q.set_defaults(func=_cmd_plot)
 
-    p = sub.add_parser("report", help="run the paper's sanity checks and write them to docs/")
+    p = sub.add_parser("report", help="run the paper's sanity checks and write them to docs/results/")
     what = p.add_subparsers(dest="report", required=True)
     q = what.add_parser("sanity", help="lift on seen/unseen objects, cup-stack grasp vs insertion, drawer choice")
     q.add_argument("--lift", type=Path, help="lift-cube policy folder")

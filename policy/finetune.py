@@ -6,7 +6,7 @@ Training starts from the parent's weights and its action normalizer (its absolut
 The observation normalizer keeps the parent's range and is widened to cover the takeover
 observations (``widen_obs_range``): a state on an object the parent never saw (a hammer's extent
 after a cube's) would otherwise reach the network several ranges outside anything it was trained
-on, and small takeover sets taught it nothing (docs/benchmarks.md, "finetune-widened"). Every
+on, and small takeover sets taught it nothing (docs/benchmarks/finetune.md, "finetune-widened"). Every
 mini-batch mixes ``ratio`` takeover / ``1 - ratio`` pretraining (``policy.mixing``), and the number
 of steps grows with the takeover data (``FinetuneConfig.steps_for``).
 Evaluation rolls the policy out autonomously through the one ``Controller`` (``rollout_policy``) on

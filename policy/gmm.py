@@ -29,7 +29,7 @@ import torch
 
 CRITERIA = ("bic", "likelihood")
 # "auto": numba for tensors on the CPU (each fit stops on its own; several times faster than the batched
-# torch EM there, docs/performance.md), torch on an accelerator (one batched EM for the whole fleet)
+# torch EM there, docs/benchmarks/serving.md), torch on an accelerator (one batched EM for the whole fleet)
 BACKENDS = ("auto", "numba", "torch", "sklearn")
 
 

@@ -1,4 +1,4 @@
-"""The markdown and figures of a ``hitl bench hitl`` run (``--report docs/benchmarks.md``).
+"""The markdown and figures of a ``hitl bench hitl`` run (``--report docs/benchmarks/hitl.md``).
 
 Figures (into ``--figures``): one success-vs-assisted-steps curve per task, and one timeline per task
 showing where on the trajectory every signal fires in the shadow runs. Each figure's footer states
@@ -7,6 +7,7 @@ the command, seeds, machine and date.
 
 from __future__ import annotations
 
+import os
 import textwrap
 from pathlib import Path
 
@@ -142,10 +143,24 @@ def _fmt(point: dict | None) -> str:
     return "—" if point is None else f"{point['assisted_steps']:.1f}"
 
 
-def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = True) -> str:
-    """The generated section; ``paper`` adds the paper's table beside ours (the main run's section)."""
+def run_label(summary: dict, section: str) -> str:
+    """What a section measured, for its headings: the section's name, then its signals, tasks and
+    episodes per task (``main run: 10 signals, 5 tasks, 20 episodes each``). Every heading of a section
+    ends with it, so two sections of one report never share a heading."""
+    recipe = summary.get("recipe") or {}
+    parts = [f"{len(recipe['signals'])} signals"] if recipe.get("signals") else []
+    parts.append(f"{len(summary['tasks'])} tasks")
+    if recipe.get("episodes"):
+        parts.append(f"{recipe['episodes']} episodes each")
+    return f"{section} run: " + ", ".join(parts)
+
+
+def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = True, section: str = "main") -> str:
+    """The generated section; ``paper`` adds the paper's table beside ours (the main run's section).
+    Every heading names the section and what it ran (``run_label``)."""
     tasks = list(summary["tasks"])
     p = summary.get("provenance", {})
+    label = run_label(summary, section)
     lines = [
         "<!-- written by `hitl bench hitl --report`; do not edit by hand -->",
         "",
@@ -153,7 +168,7 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
         f"Seeds {p.get('seeds')} (reference rollouts {p.get('reference_seeds')}); {p.get('machine', '')}; "
         f"{p.get('date', '')}; recipe {summary['recipe_hash']}.",
         "",
-        "### Fewest human-assisted steps per episode for 100% success (95% in brackets)",
+        f"### Fewest human-assisted steps per episode for 100% success (95% in brackets), {label}",
         "",
         *_header(tasks),
     ]
@@ -187,7 +202,7 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
     lines.append("")
     if paper:
         lines += [
-            "### The paper's table beside ours",
+            f"### The paper's table beside ours, {label}",
             "",
             "| signal | paper: Lift / Cup / Drawer | ours: " + " / ".join(tasks) + " |",
             "|---|---|---|",
@@ -202,7 +217,7 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
             )
         lines.append("")
     else:  # a short sweep (the ablations): every point of it, as the curves are too close to read
-        lines += ["### Every threshold of the sweep", "", *_header(tasks)]
+        lines += [f"### Every threshold of the sweep, {label}", "", *_header(tasks)]
         for s in signals:
             cells = []
             for t in tasks:
@@ -216,7 +231,7 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
             lines.append(f"| {s} | " + " | ".join(cells) + " |")
         lines += ["", "Cells: threshold: success rate / assisted steps per episode.", ""]
     lines += [
-        "### At each signal's own calibration",
+        f"### At each signal's own calibration, {label}",
         "",
         *_header(tasks),
     ]
@@ -235,7 +250,7 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
     if fa.get("signals"):
         labels = sorted({lab for r in fa["signals"].values() for lab in r["by_threshold"]}, key=lambda x: float(x[1:]))
         lines += [
-            f"### False alarms on {fa['task']} ({fa['episodes']} episodes that succeed on their own)",
+            f"### False alarms on {fa['task']} ({fa['episodes']} episodes that succeed on their own), {label}",
             "",
             "| signal | own calibration | " + " | ".join(labels) + " |",
             "|---|---|" + "---|" * len(labels),
@@ -250,7 +265,7 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
         dt = list(diag["tasks"])
         lines += [
             f'### Per-state AUROC for "needs help" (last {diag["window"]} steps before an autonomous failure '
-            "vs every step of episodes the policy completes alone)",
+            f"vs every step of episodes the policy completes alone), {label}",
             "",
             *_header(dt),
         ]
@@ -262,7 +277,7 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
         lines += ["", f"States (positive/negative): {counts}.", ""]
         lines += [
             "### Where each score peaks (median step of its maximum over the autonomous episodes, and that "
-            "step as a share of the episode)",
+            f"step as a share of the episode), {label}",
             "",
             *_header(dt),
         ]
@@ -274,20 +289,12 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
             lines.append(f"| {s} | " + " | ".join(cells) + " |")
         lines.append("")
     if figures:
-        lines += ["### Figures", ""]
-        for f in figures:
-            rel = Path(f).resolve().relative_to(report.parent.resolve()) if _under(f, report.parent) else f
+        lines += [f"### Figures, {label}", ""]
+        for f in figures:  # relative to the report, wherever the figures folder is (docs/figures/)
+            rel = Path(os.path.relpath(Path(f).resolve(), report.parent.resolve())).as_posix()
             lines.append(f"![{Path(f).stem}]({rel})")
         lines.append("")
     return "\n".join(lines)
-
-
-def _under(path: Path, folder: Path) -> bool:
-    try:
-        Path(path).resolve().relative_to(Path(folder).resolve())
-        return True
-    except ValueError:
-        return False
 
 
 def write_report(summary: dict, raw: dict, report: Path, figures_dir: Path, section: str = "main") -> Path:
@@ -296,7 +303,7 @@ def write_report(summary: dict, raw: dict, report: Path, figures_dir: Path, sect
     figures_dir.mkdir(parents=True, exist_ok=True)
     prefix = "hitl" if section == "main" else f"hitl-{section}"
     figures = plot_curves(summary, figures_dir, prefix) + plot_timelines(summary, raw, figures_dir, prefix)
-    body = markdown(summary, figures, report, paper=section == "main")
+    body = markdown(summary, figures, report, paper=section == "main", section=section)
     return replace_section(report, section, body)
 
 

@@ -1,5 +1,5 @@
 """Summaries of ``hitl bench hitl`` runs: sweep curves, the fewest assisted steps that reach a success
-rate, false alarms, per-state diagnostics; the markdown of ``docs/benchmarks.md`` and its figures.
+rate, false alarms, per-state diagnostics; the markdown of ``docs/benchmarks/hitl.md`` and its figures.
 
 Per-state ground truth ("this state needs help"): a step within ``NEEDS_HELP_WINDOW`` steps before
 the end of an episode the policy failed on its own is positive; every step of an episode the same

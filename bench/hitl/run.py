@@ -1,6 +1,6 @@
 """``hitl bench hitl``: how many human steps each assistance signal costs to bring episodes to success.
 
-The paper's protocol (``docs/benchmarks.md``): every episode runs through the fleet's ``Controller``
+The paper's protocol (``docs/benchmarks/hitl.md``): every episode runs through the fleet's ``Controller``
 (``policy.assisted.run_assisted``), batched across all of a task's episodes; the asking signal
 decides when the robot asks; the simulated operator (the task's scripted expert, driving from the
 operator view only) answers with ``budget`` steps of delta-pose and gripper commands per request.

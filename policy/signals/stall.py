@@ -1,10 +1,10 @@
 """``stall``: ask when the policy stops making progress: its next action barely moves the end effector,
 with the gripper open, for ``patience`` steps in a row.
 
-Why (docs/signals.md, "stall"; docs/benchmarks.md, "Asking when the policy is stuck"): on an object it
-has never seen, the object-frame lift policy approaches well (the approach depends on where the
-object is, which it knows) and then stops above the object, open, because it does not know where
-this shape is grasped. That is the state that needs help. The uncertainty
+Why (docs/signals.md, "stall"; docs/benchmarks/finetune.md, "Whole takeovers: asking when the policy
+is stuck"): on an object it has never seen, the object-frame lift policy approaches well (the
+approach depends on where the object is, which it knows) and then stops above the object, open,
+because it does not know where this shape is grasped. That is the state that needs help. The uncertainty
 signals ask at the first step instead: the new object's extent is outside everything the policy was
 trained on, so every step of the episode looks uncertain, and the operator ends up driving whole
 episodes.
