@@ -1,6 +1,6 @@
 """``hitl``: the project's command line. Each subcommand's code lives in the module named beside it.
 
-Data and policies (this module, ``policy_commands``, ``signal_commands``):
+Data and policies (this module, ``policy_commands``, ``signal_commands``; shared flags in ``args``):
   tasks         list the registered tasks with their observation and action specs
   demos         record scripted demonstrations as MCAP episodes
   inspect       check episode files (and salvage truncated ones with --recover)
@@ -16,7 +16,8 @@ The service (``server_commands``, ``registry_commands``):
   token         create or revoke API tokens
   policy        the policy registry: list, promote, rollback (to the version before)
   finetune      fine-tune on takeover segments, recalibrate, evaluate, gate
-Benchmarks, reports and figures (``bench_commands``, ``console_commands``; the code is in ``bench/``):
+Benchmarks, reports and figures (``report_commands``, ``bench_commands``, ``console_commands``; the
+code is in ``bench/``):
   bench         uncertainty, signals, fleet, api, loop, finetune-load, hitl, hitl-service, finetune,
                 console: each prints its measurements as JSON
   report        sanity (the paper's sanity checks), separation (every signal's AUROC)
@@ -171,11 +172,13 @@ def build_parser() -> argparse.ArgumentParser:
         console_commands,
         policy_commands,
         registry_commands,
+        report_commands,
         server_commands,
         signal_commands,
     )
 
-    bench = policy_commands.register(sub)
+    policy_commands.register(sub)
+    bench = report_commands.register(sub)
     signal_commands.register(sub, bench)
     server_commands.register(sub, bench)
     bench_commands.register(bench)
