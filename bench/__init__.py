@@ -11,7 +11,7 @@ in the module of its name, the two large ones in packages:
 - ``uncertainty``, ``signals``, ``fleet``: what a robot-step, a signal and a fleet tick cost as served;
 - ``api``, ``loop``, ``finetune_load``, ``console``: the service under load;
 - ``harness``: what those share (the service in this process, client processes, measurement windows,
-  timers);
+  timers); ``report_sections``: the generated sections of a benchmark page (``--report``, ``--section``);
 - ``sanity``, ``separation``, ``figures``: ``hitl report sanity``, ``hitl report separation``,
   ``hitl plot uncertainty``; ``screenshots``: ``hitl docs screenshots``.
 """

@@ -189,7 +189,7 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
 
     from bench.finetune.report import markdown, plot, summarize
     from bench.finetune.run import FinetuneBenchConfig, run_bench
-    from bench.hitl.docs import replace_section
+    from bench.report_sections import replace_section
     from policy.finetune import FinetuneConfig
 
     given = {k: v for k, v in (("policy", args.policy), ("eval_episodes", args.episodes)) if v is not None}

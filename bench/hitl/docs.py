@@ -19,6 +19,7 @@ import numpy as np  # noqa: E402
 
 from bench.hitl.report import PAPER  # noqa: E402
 from bench.hitl.run import FULL_TELEOP, RANDOM, quantile_label, shadow_scores, thresholds_from  # noqa: E402
+from bench.report_sections import replace_section  # noqa: E402
 
 PAPER_COLUMN = {"lift-nut": "lift", "lift-hammer": "lift", "lift-hook": "lift"}
 FIRE_QUANTILE = 0.95  # the timelines mark steps above this quantile of the reference scores
@@ -305,19 +306,3 @@ def write_report(summary: dict, raw: dict, report: Path, figures_dir: Path, sect
     figures = plot_curves(summary, figures_dir, prefix) + plot_timelines(summary, raw, figures_dir, prefix)
     body = markdown(summary, figures, report, paper=section == "main", section=section)
     return replace_section(report, section, body)
-
-
-def replace_section(report: Path, section: str, body: str) -> Path:
-    """Puts ``body`` between the ``hitl-bench:<section>`` markers of ``report``, keeping the hand-written
-    text around them; a report without them gets them appended."""
-    begin, end = f"<!-- hitl-bench:{section}:begin -->", f"<!-- hitl-bench:{section}:end -->"
-    report.parent.mkdir(parents=True, exist_ok=True)
-    text = report.read_text() if report.is_file() else ""
-    if begin in text and end in text:
-        head, rest = text.split(begin, 1)
-        _, tail = rest.split(end, 1)
-        text = f"{head}{begin}\n{body}\n{end}{tail}"
-    else:
-        text = f"{text}{begin}\n{body}\n{end}\n"
-    report.write_text(text)
-    return report
