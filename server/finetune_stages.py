@@ -214,7 +214,7 @@ class JobRun:
                 "skipped": skipped,
                 "excluded": excluded,
                 "tasks": tasks,
-                "pretraining": str(self.pretrain_folder),
+                "pretraining": paths.portable(self.pretrain_folder),
             },
             progress=0.02,
         )
