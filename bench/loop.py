@@ -4,7 +4,12 @@ any settings overridden through ``HITL_*`` variables), the simulated operator (`
 REST API only) serving its queue from this process, for a wall-clock duration. Reported from the
 service's own database: episodes that ended on their own (success or timeout) and their success
 rate, overall and per task; assistance events, assisted steps and takeovers per task; episodes
-interrupted; the bot's takeovers, commands and errors.
+interrupted; the bot's takeovers, commands and errors. Whether the queue served every robot is read
+from the service before it stops (``queue_snapshot``): the longest wait from a request to its claim
+(the queue's own count, ``/metrics/fleet``), and each request still unclaimed at the end with its age
+so far, since a robot that was never served has no claim to show its wait. Per task, the longest
+wait among the bot's claims (the wait the service answered each claim with; the bot is the run's
+only operator).
 """
 
 from __future__ import annotations
@@ -102,6 +107,7 @@ def run_loop(
         stop.set()
         if thread is not None:
             thread.join(timeout=30)
+        queue = queue_snapshot(url, token)
     finally:
         stop.set()
         proc.terminate()
@@ -111,14 +117,41 @@ def run_loop(
             proc.kill()
         if operator is not None:
             operator.close()
-    return _report(sessions, settings, seconds, mode, operator, since)
+    return loop_report(sessions, settings, seconds, mode, operator, since, queue)
 
 
-def _report(
-    sessions, settings: Settings, seconds: float, mode: str, bot: OperatorBot | None, since: datetime | None = None
+def queue_snapshot(url: str, token: str) -> dict | None:
+    """The service's queue before it stops: ``longest_wait_s`` (request to claim, the longest so far)
+    and ``unclaimed`` (robot, task, reason and age of each request nobody claimed, oldest first); None
+    when the service does not answer."""
+    try:
+        with httpx.Client(base_url=url + "/api/v1", headers={"Authorization": f"Bearer {token}"}, timeout=10) as c:
+            metrics = c.get("/metrics/fleet").raise_for_status().json()
+            requests = c.get("/assistance").raise_for_status().json()
+            tasks = {r["id"]: r["task"] for r in c.get("/robots").raise_for_status().json()}
+    except httpx.HTTPError:
+        return None
+    unclaimed = [
+        {"robot_id": r["robot_id"], "task": tasks.get(r["robot_id"]), "waited_s": r["waiting_s"], "reason": r["reason"]}
+        for r in requests
+        if r["holder"] is None
+    ]
+    unclaimed.sort(key=lambda r: -r["waited_s"])
+    return {"longest_wait_s": metrics["queue_wait_max_s"], "unclaimed": unclaimed}
+
+
+def loop_report(
+    sessions,
+    settings: Settings,
+    seconds: float,
+    mode: str,
+    bot: OperatorBot | None,
+    since: datetime | None = None,
+    queue: dict | None = None,
 ) -> dict:
     """What the database holds of the run (episodes started ``since``): episodes that ended on their own,
-    per task, and the takeovers."""
+    per task, and the takeovers; with ``queue`` (``queue_snapshot``), the longest wait and the requests
+    left unclaimed."""
     since = since or datetime.min.replace(tzinfo=UTC)
     with sessions() as s:
         episodes = list(s.scalars(select(EpisodeRecord).where(EpisodeRecord.started_at >= since)))
@@ -144,7 +177,12 @@ def _report(
         who = seg.reason.split(":")[0].split(" ")[0]
         asked_by[who] += 1
         task_asked_by[seg.task][who] += 1
+    task_of = {r.robot_id: r.task for r in [*episodes, *segments]}
+    for robot_id, waited in bot.waits if bot is not None else ():
+        t = per_task[task_of.get(robot_id, "?")]
+        t["longest_wait_s"] = max(t.get("longest_wait_s") or 0.0, waited)
     for task, t in per_task.items():
+        t.setdefault("longest_wait_s", None)
         t["success_rate"] = t["successes"] / t["episodes"] if t["episodes"] else None
         t["takeovers"] = sum(task_asked_by[task].values())
         t["takeovers_asked_by"] = dict(task_asked_by[task])
@@ -161,5 +199,7 @@ def _report(
         "per_task": dict(sorted(per_task.items())),
         "takeovers_ended_by": dict(ended_by),
         "takeovers_asked_by": dict(asked_by),
+        "longest_wait_s": None if queue is None else queue["longest_wait_s"],
+        "unclaimed_at_end": None if queue is None else queue["unclaimed"],
         "bot": None if bot is None else {"takeovers": bot.takeovers, "commands": bot.commands, "errors": bot.errors},
     }

@@ -1,17 +1,49 @@
-"""The assistance queue: requests ordered by uncertainty and waiting time; a claim is a lease.
+"""The assistance queue: open requests ordered by urgency and waiting time; a claim is a lease.
 
 One controller per robot. A claim lasts ``lease_seconds`` and is renewed by heartbeats; when it
 expires the request returns to the queue (the robot holds meanwhile). Thread-safe.
+
+**Order.** ``priority = urgency + waited / wait_scale`` (``wait_scale`` 10 s), highest first, claimed
+requests last. The urgency says how far the asking score is over its threshold, as a fraction of the
+score: ``1 - threshold / score`` when ``score > threshold > 0``, so it lies in [0, 1) whatever the
+signal's scale, and within one signal a higher score still ranks first. Signals' scales differ by
+orders of magnitude (``spread`` reads ~1,100x its threshold on lift-hammer, 1.3x on open-drawer: 0.999
+and 0.23 here); ranked by ``score / threshold``, as before, a fresh lift-hammer request went ahead of
+an open-drawer robot that had waited up to three hours. A request that gives no scale to measure the
+score against has urgency 0 and ranks by its wait alone: the watchdog's and an operator's requests
+(opened with score = threshold = 1: at the threshold, where the old rule put them too and where a
+score's urgency is 0), a threshold that is not positive and finite (a signal told to ask at every
+step, or one whose zero means nothing), a score that is NaN. A score of +inf has urgency 1.
+
+**No robot starves.** Two urgencies differ by at most 1, so a request opened more than
+``wait_scale`` after request A never ranks ahead of A while A waits. Once A has waited ``wait_scale``,
+only requests already open then can be claimed before it: at most one per other robot (a robot has
+one request at a time), the queue's length. With operators claiming the head of the queue (as
+``OperatorBot`` does; the order is advice, an operator may claim any robot), A waits at most
+``wait_scale`` + queue length x time per takeover / operators (the length counts A and covers the
+takeovers in progress). Lease expiries are not counted: a request whose lease ran out goes back with
+its opening time, so one that was ahead of A is ahead again.
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 import threading
 import time
 from dataclasses import dataclass, field
 
 from server.errors import ServiceError
+
+WAIT_SCALE_S = 10.0  # seconds of waiting worth the whole urgency range
+
+
+def urgency(score: float, threshold: float) -> float:
+    """How far ``score`` is over ``threshold``, as a fraction of the score: ``1 - threshold / score`` in
+    [0, 1] when ``score > threshold > 0`` (1 only for an infinite score), else 0 (see the module)."""
+    if not (0 < threshold < math.inf) or not score > threshold:  # NaN compares False: 0
+        return 0.0
+    return 1.0 - threshold / score
 
 
 @dataclass
@@ -29,10 +61,10 @@ class AssistanceRequest:
     requeued: int = 0
     expired_holder: str | None = None  # who held the lease that ran out last
 
-    def priority(self, now: float, wait_scale: float = 10.0) -> float:
-        """Higher first: U relative to its threshold, plus one unit per ``wait_scale`` seconds waited."""
-        rel = self.uncertainty / self.threshold if self.threshold > 0 else self.uncertainty
-        return rel + (now - self.created) / wait_scale
+    def priority(self, now: float, wait_scale: float = WAIT_SCALE_S) -> float:
+        """Higher first: the urgency (in [0, 1], whatever the signal's scale) plus one unit per
+        ``wait_scale`` seconds waited; finite for every score and threshold (see the module)."""
+        return urgency(self.uncertainty, self.threshold) + (now - self.created) / wait_scale
 
 
 class AssistanceQueue:
@@ -43,16 +75,21 @@ class AssistanceQueue:
         self._by_robot: dict[int, AssistanceRequest] = {}
         self.waits: list[float] = []  # seconds from request to claim, for metrics
 
-    def open(self, robot_id: int, uncertainty: float, threshold: float, reason: str) -> AssistanceRequest:
+    def open(
+        self, robot_id: int, uncertainty: float, threshold: float, reason: str, now: float | None = None
+    ) -> AssistanceRequest:
+        """The robot's open request, or a new one opened at ``now`` (default: ``time.monotonic()``)."""
         with self._lock:
             if robot_id in self._by_robot:
                 return self._by_robot[robot_id]
-            req = AssistanceRequest(next(self._ids), robot_id, uncertainty, threshold, reason)
+            created = time.monotonic() if now is None else now
+            req = AssistanceRequest(next(self._ids), robot_id, uncertainty, threshold, reason, created=created)
             self._by_robot[robot_id] = req
             return req
 
-    def pending(self) -> list[AssistanceRequest]:
-        now = time.monotonic()
+    def pending(self, now: float | None = None) -> list[AssistanceRequest]:
+        """Open requests, unclaimed first, each part by priority at ``now`` (default: ``time.monotonic()``)."""
+        now = time.monotonic() if now is None else now
         with self._lock:
             return sorted(self._by_robot.values(), key=lambda r: (r.holder is not None, -r.priority(now)))
 
@@ -60,8 +97,8 @@ class AssistanceQueue:
         with self._lock:
             return self._by_robot.get(robot_id)
 
-    def claim(self, robot_id: int, operator: str) -> AssistanceRequest:
-        now = time.monotonic()
+    def claim(self, robot_id: int, operator: str, now: float | None = None) -> AssistanceRequest:
+        now = time.monotonic() if now is None else now
         with self._lock:
             req = self._by_robot.get(robot_id)
             if req is None:

@@ -24,9 +24,10 @@ def fleet_metrics(fleet: Fleet) -> dict:
     totals = fleet.recorder.totals()
     n, success, assisted = totals["episodes"], totals["successes"], totals["assisted_steps"]
     waits = np.array(list(fleet.queue.waits))
+    now = time.monotonic()
+    unclaimed = [now - r.created for r in fleet.queue.pending(now) if r.holder is None]
     busy, since = dict(fleet.operator_busy), dict(fleet.operator_since)
     views = fleet.views()
-    now = time.monotonic()
     return {
         "episodes": n,
         "success_rate": success / n if n else None,
@@ -34,6 +35,8 @@ def fleet_metrics(fleet: Fleet) -> dict:
         "assistance_events_per_episode": totals["events"] / n if n else None,
         "queue_wait_p50_s": float(np.quantile(waits, 0.5)) if len(waits) else None,
         "queue_wait_p95_s": float(np.quantile(waits, 0.95)) if len(waits) else None,
+        "queue_wait_max_s": float(waits.max()) if len(waits) else None,
+        "queue_oldest_unclaimed_s": max(unclaimed, default=None),
         "operator_busy_s": busy,
         "operator_idle_s": {op: max(0.0, now - t0 - busy.get(op, 0.0)) for op, t0 in since.items()},
         "return_on_human_effort": success / assisted if assisted else None,

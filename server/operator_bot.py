@@ -6,6 +6,7 @@ It uses only the public REST API, so it is also an example client for users.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 
@@ -41,6 +42,7 @@ class OperatorBot:
         self.takeovers = 0
         self.commands = 0
         self.errors = 0  # network errors and unexpected answers, each logged
+        self.waits: list[tuple[int, float]] = []  # (robot id, claim's waiting_s): how long its request waited
         self._driving: dict[int, list] = {}  # robot id -> [episode seed, expert, clock after its last command]
 
     def close(self) -> None:
@@ -71,6 +73,8 @@ class OperatorBot:
         if r.status_code in (404, 409):  # someone else was faster, or the request is gone
             return 0
         r.raise_for_status()
+        with contextlib.suppress(ValueError, KeyError, TypeError):  # an answer without its wait: drive anyway
+            self.waits.append((robot_id, float(r.json()["waiting_s"])))
         steps = 0
         try:
             raw = self._get(f"/robots/{robot_id}/view")

@@ -46,7 +46,9 @@ def _out(req: AssistanceRequest) -> AssistanceRequestOut:
 
 @router.get("/assistance", response_model=list[AssistanceRequestOut], responses=errors(AUTH))
 async def queue(fleet: FleetDep, _: Viewer) -> list[AssistanceRequestOut]:
-    """Open requests, unclaimed first, by priority (uncertainty relative to threshold, and waiting time)."""
+    """Open requests, unclaimed first, by priority: how far the score is over its threshold (as a fraction
+    of the score, 0 to 1) plus one unit per 10 s waited, so no robot waits long whatever its signal's scale
+    (``server.assistance``)."""
     return [_out(r) for r in fleet.queue.pending()]
 
 

@@ -171,7 +171,10 @@ class AssistanceRequestOut(BaseModel):
     threshold: float
     reason: str
     waiting_s: float
-    priority: float
+    priority: float = Field(
+        description="the queue's order, highest first: the urgency (1 - threshold / score for a score over a "
+        "positive threshold, else 0; in [0, 1] whatever the signal's scale) plus waiting_s / 10"
+    )
     holder: str | None
     lease_expires_in_s: float | None
 
@@ -308,6 +311,10 @@ class FleetMetrics(BaseModel):
     assistance_events_per_episode: float | None
     queue_wait_p50_s: float | None
     queue_wait_p95_s: float | None
+    queue_wait_max_s: float | None = Field(description="the longest wait from a request to its claim so far")
+    queue_oldest_unclaimed_s: float | None = Field(
+        description="how long the oldest request not claimed now has waited: a robot left unserved shows here"
+    )
     operator_busy_s: dict[str, float]
     operator_idle_s: dict[str, float]  # since the operator's first claim, not in control
     return_on_human_effort: float | None

@@ -154,6 +154,21 @@ def test_metrics_aggregate_finished_episodes(tmp_path):
     fleet.stop()
 
 
+def test_metrics_report_the_longest_wait_to_a_claim_and_the_oldest_unclaimed_request(tmp_path):
+    fleet, _ = _fleet(tmp_path, count=2)
+    fleet.tick()  # threshold -1: both robots ask at once
+    m = fleet.metrics()
+    assert m["queue_wait_max_s"] is None and m["queue_oldest_unclaimed_s"] >= 0
+    fleet.claim(0, "op")
+    import time
+
+    before = time.monotonic()
+    m = fleet.metrics()
+    assert m["queue_wait_max_s"] == fleet.queue.waits[0] >= 0
+    assert m["queue_oldest_unclaimed_s"] >= before - fleet.queue.get(1).created  # robot 1 still waits
+    fleet.stop()
+
+
 def test_served_evaluated_and_assisted_episodes_take_the_same_actions(tmp_path):
     """The fleet (real simulator, in-process workers), ``hitl rollout``'s loop and ``hitl assist``'s
     loop, same seeds and settings, send the same actions: one controller."""

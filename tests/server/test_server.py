@@ -176,6 +176,8 @@ def test_the_operator_bot_completes_takeovers_through_the_api(service):
     assert segment.meta["operator"] == "bot" and len(segment.steps) == segs[0]["steps"]
     metrics = httpx.get(api + "/metrics/fleet", headers=_h(service, "viewer")).json()
     assert metrics["queue_wait_p50_s"] is not None and metrics["operator_busy_s"]["bot"] > 0
+    # the claim's answer is computed just after the claim: its wait is the queue's own, plus a moment
+    assert len(bot.waits) == 2 and metrics["queue_wait_max_s"] >= max(w for _, w in bot.waits) - 0.1
     # in control and idle since its first claim add up to no more than the time the bot has been around
     assert metrics["operator_idle_s"]["bot"] + metrics["operator_busy_s"]["bot"] <= bot_seconds + 1.0
 
