@@ -3,6 +3,8 @@ import numpy as np
 from policy.assisted import AssistConfig, run_assisted, summarize_assisted
 from policy.signals import make_signal
 from policy.signals.base import Scores, TriggerState
+from sim.registry import make_expert
+from sim.spaces import TeleopCommand
 from tests.helpers import tiny_policy
 
 
@@ -62,7 +64,6 @@ def test_full_teleop_in_continuous_mode_lets_the_operator_finish_the_task():
 
 
 def test_an_operator_taking_over_picks_up_where_the_scene_stands(task_cache):
-    from sim.registry import make_expert
 
     task = task_cache("lift-cube")
     task.reset(3)
@@ -80,6 +81,43 @@ def test_an_operator_taking_over_picks_up_where_the_scene_stands(task_cache):
     late = make_expert("lift-cube")
     late.resume(task, np.random.default_rng(2))
     assert late.phase == "lift"  # keeps holding and lifts, instead of opening to start over
+
+
+def test_a_takeover_just_above_the_grasp_goes_across_and_down_without_climbing(task_cache):
+    """A robot that stopped 3 cm above and 2.5 cm beside the grasp: the operator's plan no longer
+    climbs to its 5-14 cm approach height first (each of its steps stays at or under the height it
+    started from), and it reaches the grasp sooner than an operator planning from the approach height."""
+    task = task_cache("lift-cube")
+
+    def stand_near(seed: int) -> float:
+        task.reset(seed)
+        grasp = task.privileged()["grasp_point"]
+        target = grasp + np.array([0.025, 0.0, 0.03])
+        for _ in range(60):  # drive there with the gripper open, as a stalled policy would have
+            pos = task.ee_pose()[0]
+            if np.linalg.norm(pos - target) < 0.004:
+                break
+            task.step(task.teleop(TeleopCommand(tuple(np.clip(target - pos, -0.02, 0.02)), (0, 0, 0), -1.0)).action)
+        return float(task.ee_pose()[0][2])
+
+    def steps_to_grasp(expert) -> tuple[int, float]:
+        top = -np.inf
+        for k in range(150):
+            if expert.phase == "close":
+                return k, top
+            task.step(task.teleop(expert.act(task)).action)
+            top = max(top, float(task.ee_pose()[0][2]))
+        raise AssertionError("the operator never reached the grasp")
+
+    start = stand_near(5)
+    near = make_expert("lift-cube")
+    near.resume(task, np.random.default_rng(0))
+    steps, top = steps_to_grasp(near)
+    assert top < start + 0.005
+    stand_near(5)
+    planned = make_expert("lift-cube")  # the same plan from its approach height (2.5 cm beside: "approach")
+    planned.reset(task, np.random.default_rng(0))
+    assert steps < steps_to_grasp(planned)[0]
 
 
 def test_an_operator_who_hands_back_when_held_gives_the_robot_back_holding_the_object(task_cache):
