@@ -21,6 +21,18 @@ holds still on purpose). The threshold is the ``quantile`` of stillness over tho
 policy moves slower than that on 5% of them); the robot
 asks after ``patience`` consecutive steps over it. No observation term: the signal does not care
 whether the scene is new, only whether the policy is stuck in it.
+
+**Keeping the operator's progress** (``reask_undo``). On the paper's protocol the operator gets 4
+steps per request, fewer than a grasp takes, and between two requests the policy, which cannot do
+the grasp, heads straight back to the pose where it stopped: the operator's bursts never add up
+(docs/benchmarks/hitl.md, "The object-frame lift policy"). With ``reask_undo`` the first policy step
+after a takeover asks again at once when its plan would undo the takeover: with the gripper open,
+the operator moved the end effector more than ``undo_min`` from where the robot asked (across the
+table, or up and down) and more than half of the policy's next motion that way goes back; or the
+operator closed the gripper and the policy would open it. The robot holds instead, and the operator
+carries on from where they left it. A plan that goes anywhere else (lifting the object the operator
+grasped) runs. Off by default, as every ``stall`` result recorded before it was; a fleet's cooldown
+after a hand-back (``cooldown_steps``) holds back this request too.
 """
 
 from __future__ import annotations
@@ -36,6 +48,7 @@ from policy.signals.base import (
     AssistanceSignal,
     CalibrationData,
     Patience,
+    PerRobot,
     Scores,
     SignalConfig,
     SignalError,
@@ -56,11 +69,17 @@ class StallConfig(SignalConfig):
     quantile: float = 0.95
     patience: int = 3
     calibration_batch: int = 256
+    reask_undo: bool = False
+    undo_min: float = 0.01  # metres
 
     def __post_init__(self) -> None:
         check_quantile("quantile", self.quantile)
         check_positive_int("patience", self.patience)
         check_positive_int("calibration_batch", self.calibration_batch)
+        if not isinstance(self.reask_undo, bool):
+            raise SignalError(f"reask_undo must be true or false, got {self.reask_undo!r}")
+        if not (isinstance(self.undo_min, int | float) and not isinstance(self.undo_min, bool) and self.undo_min > 0):
+            raise SignalError(f"undo_min must be a distance > 0 in metres, got {self.undo_min!r}")
 
 
 def policy_motion(action: torch.Tensor, current: torch.Tensor, n_action_steps: int) -> torch.Tensor:
@@ -82,9 +101,14 @@ class StallSignal(AssistanceSignal):
     def __init__(self, policy, config=None) -> None:
         super().__init__(policy, config)
         self._run = Patience(self.config.patience)
+        self._asked_at = PerRobot(lambda: None)  # where the robot stood when it last asked on its own
+        self._taken_over = PerRobot(bool)  # an operator drove it since its last policy step
+        self._where: tuple[np.ndarray, ...] | None = None  # the scored batch's geometry
 
     def reset(self, robot_ids: Iterable[int] | None = None) -> None:
-        self._run.reset(self._ids_for(robot_ids))
+        ids = self._ids_for(robot_ids)
+        for state in (self._run, self._asked_at, self._taken_over):
+            state.reset(ids)
 
     def _parts(self, obs: torch.Tensor, current: torch.Tensor, action: torch.Tensor | None) -> dict[str, np.ndarray]:
         if action is None:
@@ -98,12 +122,54 @@ class StallSignal(AssistanceSignal):
     @torch.no_grad()
     def score(self, batch: SignalInput) -> Scores:
         """Before calibration the stride is 1 cm per step."""
-        parts = self._parts(batch.obs, batch.current, batch.action)
+        action = batch.action if batch.action is not None else self.sample_chunks(batch.obs, 1)[:, 0]
+        parts = self._parts(batch.obs, batch.current, action)
+        n = min(int(self.policy.config.n_action_steps), action.shape[1])
+        self._where = (
+            batch.robot_ids.copy(),
+            batch.current[:, POS].double().numpy(),
+            action[:, n - 1, POS].double().numpy(),
+            (batch.current[:, GRIPPER] > 0).numpy() & (action[:, 0, GRIPPER] <= 0).numpy(),
+        )
         stride = (self.calibration or {}).get("stride", 0.01)
         return Scores(self._stillness(parts, stride), parts)
 
     def wants_help(self, scores: Scores, state: TriggerState) -> np.ndarray:
-        return self._run.update(np.asarray(scores.value) > self.threshold, state.robot_ids)
+        out = self._run.update(np.asarray(scores.value) > self.threshold, state.robot_ids)
+        if not self.config.reask_undo:
+            return out
+        where = self._where
+        if where is None or not np.array_equal(where[0], state.robot_ids):
+            raise SignalError("stall: wants_help must follow score on the same robots")
+        _, now, plan, reopens = where
+        opened = np.asarray(scores.parts["open"]) > 0
+        for j, rid in enumerate(int(r) for r in state.robot_ids):
+            if state.teleop[j]:
+                self._taken_over.set(rid, True)
+                continue
+            asked = self._asked_at.get(rid)
+            if self._taken_over.get(rid):
+                self._taken_over.set(rid, False)
+                back = opened[j] and asked is not None and self._heads_back(now[j], plan[j], asked)
+                if back or reopens[j]:
+                    out[j] = True
+                    continue  # asked again: the pose it first asked at stays the reference
+            if out[j]:
+                self._asked_at.set(rid, now[j].copy())
+        return out
+
+    def _heads_back(self, now: np.ndarray, plan: np.ndarray, asked: np.ndarray) -> bool:
+        """Across the table or up and down, taken apart: the operator moved the robot more than
+        ``undo_min`` from ``asked``, and more than half of the policy's motion from ``now`` to ``plan``
+        closes that distance again. Apart, because the policy that undoes a correction across often
+        descends at the same time (and the other way round), which hides the undo in a 3D distance."""
+        for axes in (slice(0, 2), slice(2, 3)):
+            left = float(np.linalg.norm(now[axes] - asked[axes]))
+            motion = float(np.linalg.norm(plan[axes] - now[axes]))
+            back = left - float(np.linalg.norm(plan[axes] - asked[axes]))
+            if left > self.config.undo_min and motion > 0 and back > 0.5 * motion:
+                return True
+        return False
 
     @torch.no_grad()
     def _calibrate(self, data: CalibrationData, progress: bool) -> dict:

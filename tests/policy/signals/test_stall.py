@@ -132,3 +132,60 @@ def test_config_is_validated():
         StallConfig(patience=0)
     with pytest.raises(ValueError, match="quantile"):
         StallConfig(quantile=1.0)
+
+
+def _undo_signal(**config):
+    signal = make_signal("stall", tiny_policy(), StallConfig(patience=1, reask_undo=True, **config))
+    signal.calibration = {"threshold": 0.5, "stride": 0.01}
+    return signal
+
+
+def _at(signal, pos, to, gripper_now=OPEN, gripper_plan=OPEN, teleop=False):
+    """One step of robot 0 standing at ``pos`` whose policy plans to go to ``to`` (m)."""
+    current = torch.as_tensor(_action(pos, gripper_now))[None]
+    chunk = torch.as_tensor(_action(to, gripper_plan))[None, None]
+    batch = SignalInput(torch.zeros(1, 1, 26), current, np.asarray([0]), action=chunk)
+    scores = signal.score(batch)
+    return bool(signal.wants_help(scores, TriggerState(np.asarray([0]), np.asarray([teleop])))[0])
+
+
+def test_after_a_takeover_a_plan_back_to_where_the_robot_asked_asks_again():
+    signal = _undo_signal()
+    stop = [0.0, 0.0, 1.0]
+    assert _at(signal, stop, stop)  # stalled: asks
+    _at(signal, [0.01, 0, 1], [0.0, 0, 1], teleop=True)  # the operator drives it 2.5 cm across
+    _at(signal, [0.025, 0, 1], [0.02, 0, 1], teleop=True)
+    assert _at(signal, [0.025, 0, 1], [0.015, 0, 1])  # the policy would head back: ask again at once
+    _at(signal, [0.04, 0, 1], [0.03, 0, 1], teleop=True)
+    # the reference stays the pose where it first asked: heading back towards it again asks again
+    assert _at(signal, [0.04, 0, 1], [0.03, 0, 1])
+    _at(signal, [0.05, 0, 1], [0.05, 0, 1], teleop=True)
+    assert not _at(signal, [0.05, 0, 1], [0.05, 0, 1.02])  # lifting away from it runs
+    assert not _at(signal, [0.05, 0, 1.02], [0.04, 0, 1.02])  # and later steps are only checked for a stall
+
+
+def test_a_takeover_that_moved_the_robot_less_than_undo_min_or_closed_the_gripper():
+    signal = _undo_signal(undo_min=0.01)
+    assert _at(signal, [0, 0, 1], [0, 0, 1])
+    _at(signal, [0.005, 0, 1], [0, 0, 1], teleop=True)
+    assert not _at(signal, [0.005, 0, 1], [-0.005, 0, 1])  # moved 5 mm: not worth a request
+    signal.reset([0])
+    assert _at(signal, [0, 0, 1], [0, 0, 1])
+    _at(signal, [0, 0, 0.98], [0, 0, 1], gripper_now=CLOSED, teleop=True)  # the operator closed it
+    assert _at(signal, [0, 0, 0.98], [0, 0, 0.98], gripper_now=CLOSED, gripper_plan=OPEN)  # reopening undoes it
+    _at(signal, [0, 0, 0.98], [0, 0, 1], gripper_now=CLOSED, teleop=True)
+    assert not _at(signal, [0, 0, 0.98], [0, 0, 1.0], gripper_now=CLOSED, gripper_plan=CLOSED)  # lifts: runs
+
+
+def test_without_reask_undo_a_plan_back_is_only_scored_for_a_stall():
+    signal = make_signal("stall", tiny_policy(), StallConfig(patience=1))
+    signal.calibration = {"threshold": 0.5, "stride": 0.01}
+    assert _at(signal, [0, 0, 1], [0, 0, 1])
+    _at(signal, [0.03, 0, 1], [0.03, 0, 1], teleop=True)
+    assert not _at(signal, [0.03, 0, 1], [0.015, 0, 1])
+
+
+@pytest.mark.parametrize("bad", [{"reask_undo": "yes"}, {"undo_min": 0}, {"undo_min": -0.01}, {"undo_min": True}])
+def test_reask_undo_settings_are_checked(bad):
+    with pytest.raises(SignalError):
+        StallConfig(**bad)
