@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs console-docs frame-docs \
-	finetune-docs finetune-recipe-docs hitl-dev-docs api-docs finetune-load-docs clean
+	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -122,11 +122,30 @@ hitl-dev-docs: install
 		--signals spread output-variance --quantiles 0.25 0.5 0.75 0.9 0.95 0.98 --episodes 8 --seed 2000 \
 		--reference-episodes 8 --cache runs/bench-hitl-dev --jobs 2 --json > docs/results/hitl/dev/spread-vs-output-variance.json
 
-# docs/benchmarks/service.md, "The loop": the demo fleet served with the operator bot helping, 20 minutes per
+# docs/benchmarks/hitl.md, "The object-frame lift policy": runs/lift-cube-object (from `make frame-docs`) on the
+# lift shifts on the paper's protocol (evaluation seeds 1000-1019; cells cached under runs/bench-hitl-obj), and
+# the simulated operator's takeovers with `stall` asking, on development seeds 2000-2007, in both hand-back
+# modes (about 30 min on 2 cores).
+OBJ := runs/lift-cube-object
+object-frame-hitl-docs: install
+	$(BIN)/hitl bench hitl --tasks lift-nut lift-hammer lift-hook --false-alarm-task lift-cube \
+		--policy lift-cube=$(OBJ) lift-nut=$(OBJ) lift-hammer=$(OBJ) lift-hook=$(OBJ) \
+		--signals stall stall:reask_undo=true spread denoising random full-teleop --cache runs/bench-hitl-obj --jobs 2 \
+		--json --quiet \
+		> docs/results/hitl/object-frame-lift.json
+	$(BIN)/hitl bench hitl --tasks lift-nut lift-hammer lift-hook --false-alarm-task none \
+		--policy lift-nut=$(OBJ) lift-hammer=$(OBJ) lift-hook=$(OBJ) --signals stall stall:reask_undo=true full-teleop \
+		--no-sweep --no-shadow --episodes 8 --seed 2000 --reference-episodes 8 --cache runs/bench-hitl-obj-dev --jobs 2 \
+		--json --quiet > docs/results/hitl/dev/object-frame-reask.json
+	for m in budgeted continuous; do for t in lift-nut lift-hammer lift-hook; do $(BIN)/hitl assist --policy $(OBJ) \
+		--task $$t --driver stall --mode $$m --hand-back-when-held --episodes 8 --seed 2000 --json --quiet \
+		> docs/results/hitl/dev/operator-$$m-$$t.json || exit 1; done; done
+
+# docs/benchmarks/service.md, "The loop": the demo fleet served with the operator bot helping, 10 minutes per
 # hand-back mode.
 loop-docs: install
-	$(BIN)/hitl bench loop --seconds 1200 --mode continuous --quiet > docs/results/service/loop-continuous.json
-	$(BIN)/hitl bench loop --seconds 1200 --mode budgeted --quiet > docs/results/service/loop-budgeted.json
+	$(BIN)/hitl bench loop --seconds 600 --mode continuous --quiet > docs/results/service/loop-continuous.json
+	$(BIN)/hitl bench loop --seconds 600 --mode budgeted --quiet > docs/results/service/loop-budgeted.json
 
 # docs/benchmarks/service.md, "API load": the real service, 16 robots, 50 REST/WebSocket clients (about 1 min).
 # Quote only runs with `other_processes` near 0: the machine's other load is in the JSON.
