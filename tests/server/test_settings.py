@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import pytest
 
 from hitl.cli import main
@@ -91,3 +93,13 @@ def test_the_jobs_takeover_selection_comes_from_settings_with_flags_on_top():
     assert config("--takeover-tail", "0").takeover_tail is None  # every step again
     assert config("--no-successful-only").successful_only is False
     assert _finetune_config(build_parser().parse_args(["finetune"]), Settings()).selection.tail is None
+
+
+def test_half_the_demo_fleet_is_in_distribution_and_each_problem_type_has_a_robot():
+    """``make demo``: at least half the robots on their policy's training task, and each of
+    the three problem types present, so a new user sees both."""
+    settings = Settings.load(Path(__file__).resolve().parents[2] / "configs" / "demo.toml")
+    counts = {g.task: g.count for g in settings.robots}
+    assert 2 * counts.get("lift-cube", 0) >= sum(counts.values())
+    assert any(t in counts for t in ("lift-nut", "lift-hammer", "lift-hook"))  # distribution shift
+    assert "cup-stack" in counts and "open-drawer" in counts  # partial observability, multimodality
