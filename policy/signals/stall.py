@@ -124,13 +124,14 @@ class StallSignal(AssistanceSignal):
         """Before calibration the stride is 1 cm per step."""
         action = batch.action if batch.action is not None else self.sample_chunks(batch.obs, 1)[:, 0]
         parts = self._parts(batch.obs, batch.current, action)
-        n = min(int(self.policy.config.n_action_steps), action.shape[1])
-        self._where = (
-            batch.robot_ids.copy(),
-            batch.current[:, POS].double().numpy(),
-            action[:, n - 1, POS].double().numpy(),
-            (batch.current[:, GRIPPER] > 0).numpy() & (action[:, 0, GRIPPER] <= 0).numpy(),
-        )
+        if self.config.reask_undo:  # what ``wants_help`` compares after a takeover
+            n = min(int(self.policy.config.n_action_steps), action.shape[1])
+            self._where = (
+                batch.robot_ids.copy(),
+                batch.current[:, POS].double().numpy(),
+                action[:, n - 1, POS].double().numpy(),
+                (batch.current[:, GRIPPER] > 0).numpy() & (action[:, 0, GRIPPER] <= 0).numpy(),
+            )
         stride = (self.calibration or {}).get("stride", 0.01)
         return Scores(self._stillness(parts, stride), parts)
 
