@@ -56,9 +56,9 @@ def prometheus(fleet: FleetDep, _: Viewer) -> Response:
     for mode, n in m["robots_by_mode"].items():
         modes.labels(mode).set(n)
     Gauge("hitl_queue_length", "open assistance requests", registry=registry).set(len(fleet.queue.pending()))
-    oldest = Gauge("hitl_queue_oldest_unclaimed_seconds", "wait of the oldest unclaimed request", registry=registry)
-    oldest.set(m["queue_oldest_unclaimed_s"] or 0)
-    Gauge("hitl_queue_wait_max_seconds", "longest wait from request to claim", registry=registry).set(
-        m["queue_wait_max_s"] or 0
-    )
+    for name, doc, key in (
+        ("hitl_queue_oldest_unclaimed_seconds", "wait of the oldest unclaimed request", "queue_oldest_unclaimed_s"),
+        ("hitl_queue_wait_max_seconds", "longest wait from request to claim", "queue_wait_max_s"),
+    ):
+        Gauge(name, doc, registry=registry).set(m[key] or 0)
     return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)

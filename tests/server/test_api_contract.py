@@ -198,6 +198,7 @@ def test_metrics_is_documented_and_served_as_text(service):
     r = httpx.get(service.url + "/metrics", headers=_h(service, "viewer"))
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
     assert "hitl_control_ticks_total" in r.text
+    assert "hitl_queue_wait_max_seconds" in r.text and "hitl_queue_oldest_unclaimed_seconds" in r.text
     with pytest.raises(json.JSONDecodeError):
         json.loads(r.text)
 
