@@ -1,5 +1,6 @@
 """``stall``: ask when the policy stops making progress: its next action barely moves the end effector,
-with the gripper open, for ``patience`` steps in a row.
+with the gripper open (or, with ``closed_grace``, closed for longer than a grasp takes), for
+``patience`` steps in a row.
 
 Why (docs/signals.md, "stall"; docs/benchmarks/finetune.md, "Whole takeovers: asking when the policy
 is stuck"): on an object it has never seen, the object-frame lift policy approaches well (the
@@ -28,11 +29,21 @@ the grasp, heads straight back to the pose where it stopped: the operator's burs
 (docs/benchmarks/hitl.md, "The object-frame lift policy"). With ``reask_undo`` the first policy step
 after a takeover asks again at once when its plan would undo the takeover: with the gripper open,
 the operator moved the end effector more than ``undo_min`` from where the robot asked (across the
-table, or up and down) and more than half of the policy's next motion that way goes back; or the
-operator closed the gripper and the policy would open it. The robot holds instead, and the operator
-carries on from where they left it. A plan that goes anywhere else (lifting the object the operator
-grasped) runs. Off by default, as every ``stall`` result recorded before it was; a fleet's cooldown
-after a hand-back (``cooldown_steps``) holds back this request too.
+table, or up and down) and more than half of the policy's next motion that way goes back. And while
+a grasp the operator closed still holds, every policy step that would open the gripper asks again:
+a policy that cannot do the grasp does not know to keep it either, and reopens it a few steps into
+the lift (traced on lift-hammer, development seeds 2003, 2005 and 2007: the object drops and the
+operator grasps it again). The robot holds instead, and the operator carries on from where they
+left it. A plan that goes anywhere else (lifting the object the operator grasped) runs.
+
+**A grasp that goes nowhere** (``closed_grace``). Stillness is 0 while the gripper is closed: a grasp
+holds still on purpose while the fingers close. But a policy that closed on nothing, or on an object
+it cannot lift, then stands still, closed, to the end of the episode (lift-hook, development seed
+2006). With ``closed_grace`` = n, standing still counts again once the gripper has been closed for
+more than n scored steps in a row.
+
+Both are off by default, as every ``stall`` result recorded before them was; a fleet's cooldown
+after a hand-back (``cooldown_steps``) holds back their requests too.
 """
 
 from __future__ import annotations
@@ -71,6 +82,7 @@ class StallConfig(SignalConfig):
     calibration_batch: int = 256
     reask_undo: bool = False
     undo_min: float = 0.01  # metres
+    closed_grace: int = 0  # 0: off; else closed-gripper steps after which standing still counts too
 
     def __post_init__(self) -> None:
         check_quantile("quantile", self.quantile)
@@ -80,6 +92,9 @@ class StallConfig(SignalConfig):
             raise SignalError(f"reask_undo must be true or false, got {self.reask_undo!r}")
         if not (isinstance(self.undo_min, int | float) and not isinstance(self.undo_min, bool) and self.undo_min > 0):
             raise SignalError(f"undo_min must be a distance > 0 in metres, got {self.undo_min!r}")
+        g = self.closed_grace
+        if not (isinstance(g, int) and not isinstance(g, bool) and g >= 0):
+            raise SignalError(f"closed_grace must be an integer >= 0, got {g!r}")
 
 
 def policy_motion(action: torch.Tensor, current: torch.Tensor, n_action_steps: int) -> torch.Tensor:
@@ -103,11 +118,13 @@ class StallSignal(AssistanceSignal):
         self._run = Patience(self.config.patience)
         self._asked_at = PerRobot(lambda: None)  # where the robot stood when it last asked on its own
         self._taken_over = PerRobot(bool)  # an operator drove it since its last policy step
-        self._where: tuple[np.ndarray, ...] | None = None  # the scored batch's geometry
+        self._grasp_kept = PerRobot(bool)  # the gripper is closed as an operator left it
+        self._closed_for = PerRobot(int)  # consecutive scored steps with the gripper closed
+        self._where: tuple[np.ndarray, ...] | None = None  # the scored batch's geometry and gripper
 
     def reset(self, robot_ids: Iterable[int] | None = None) -> None:
         ids = self._ids_for(robot_ids)
-        for state in (self._run, self._asked_at, self._taken_over):
+        for state in (self._run, self._asked_at, self._taken_over, self._grasp_kept, self._closed_for):
             state.reset(ids)
 
     def _parts(self, obs: torch.Tensor, current: torch.Tensor, action: torch.Tensor | None) -> dict[str, np.ndarray]:
@@ -130,19 +147,34 @@ class StallSignal(AssistanceSignal):
                 batch.robot_ids.copy(),
                 batch.current[:, POS].double().numpy(),
                 action[:, n - 1, POS].double().numpy(),
-                (batch.current[:, GRIPPER] > 0).numpy() & (action[:, 0, GRIPPER] <= 0).numpy(),
+                (batch.current[:, GRIPPER] > 0).numpy(),
+                (action[:, 0, GRIPPER] <= 0).numpy(),
             )
         stride = (self.calibration or {}).get("stride", 0.01)
-        return Scores(self._stillness(parts, stride), parts)
+        still = self._stillness(parts, stride)
+        grace = self.config.closed_grace
+        if grace:  # a gripper closed on nothing (or on a grasp that does not lift) for longer than a grasp takes
+            closed = (batch.current[:, GRIPPER] > 0).numpy()
+            for j, rid in enumerate(int(r) for r in batch.robot_ids):
+                self._closed_for.set(rid, self._closed_for.get(rid) + 1 if closed[j] else 0)
+                if self._closed_for.get(rid) > grace:
+                    still[j] = max(0.0, 1.0 - float(parts["motion"][j]) / stride)
+        return Scores(still, parts)
 
     def wants_help(self, scores: Scores, state: TriggerState) -> np.ndarray:
-        out = self._run.update(np.asarray(scores.value) > self.threshold, state.robot_ids)
+        return self.trigger(np.asarray(scores.value) > self.threshold, scores, state)
+
+    def trigger(self, over: np.ndarray, scores: Scores, state: TriggerState) -> np.ndarray:
+        """The rule behind ``wants_help``, given which robots are over the threshold this step (a signal
+        that holds a ``stall`` applies its own threshold): ``patience`` steps in a row, and with
+        ``reask_undo`` the checks after a takeover. ``scores`` are this signal's, from ``score``."""
+        out = self._run.update(np.asarray(over, dtype=bool), state.robot_ids)
         if not self.config.reask_undo:
             return out
         where = self._where
         if where is None or not np.array_equal(where[0], state.robot_ids):
             raise SignalError("stall: wants_help must follow score on the same robots")
-        _, now, plan, reopens = where
+        _, now, plan, closed, opens = where
         opened = np.asarray(scores.parts["open"]) > 0
         for j, rid in enumerate(int(r) for r in state.robot_ids):
             if state.teleop[j]:
@@ -151,10 +183,15 @@ class StallSignal(AssistanceSignal):
             asked = self._asked_at.get(rid)
             if self._taken_over.get(rid):
                 self._taken_over.set(rid, False)
-                back = opened[j] and asked is not None and self._heads_back(now[j], plan[j], asked)
-                if back or reopens[j]:
+                self._grasp_kept.set(rid, bool(closed[j]))
+                if opened[j] and asked is not None and self._heads_back(now[j], plan[j], asked):
                     out[j] = True
                     continue  # asked again: the pose it first asked at stays the reference
+            if not closed[j]:
+                self._grasp_kept.set(rid, False)
+            elif self._grasp_kept.get(rid) and opens[j]:
+                out[j] = True  # the policy would let go of the operator's grasp
+                continue
             if out[j]:
                 self._asked_at.set(rid, now[j].copy())
         return out

@@ -177,6 +177,39 @@ def test_a_takeover_that_moved_the_robot_less_than_undo_min_or_closed_the_grippe
     assert not _at(signal, [0, 0, 0.98], [0, 0, 1.0], gripper_now=CLOSED, gripper_plan=CLOSED)  # lifts: runs
 
 
+def test_while_the_operators_grasp_holds_no_later_policy_step_lets_go():
+    signal = _undo_signal()
+    assert _at(signal, [0, 0, 1], [0, 0, 1])
+    _at(signal, [0, 0, 0.98], [0, 0, 1], gripper_now=CLOSED, teleop=True)  # the operator grasps
+    for z in (0.99, 1.0, 1.01):  # the policy lifts, closed: it runs
+        assert not _at(signal, [0, 0, z], [0, 0, z + 0.01], gripper_now=CLOSED, gripper_plan=CLOSED)
+    assert _at(signal, [0, 0, 1.02], [0, 0, 1.03], gripper_now=CLOSED, gripper_plan=OPEN)  # a later step lets go
+    # once the gripper is open again (the operator let go) the policy's own grasps are its own
+    _at(signal, [0, 0, 1.02], [0, 0, 1.02], teleop=True)
+    assert not _at(signal, [0, 0, 1.02], [0, 0, 1.03])
+    assert not _at(signal, [0, 0, 1.03], [0, 0, 1.04], gripper_now=CLOSED, gripper_plan=OPEN)
+    signal.reset([0])
+    assert not _at(signal, [0, 0, 1.0], [0, 0, 1.0], gripper_now=CLOSED, gripper_plan=OPEN)
+
+
+def test_with_closed_grace_a_closed_gripper_that_stands_still_counts_after_the_grace():
+    signal = make_signal("stall", tiny_policy(), StallConfig(patience=1, closed_grace=2))
+    signal.calibration = {"threshold": 0.5, "stride": 0.01}
+    # closing and holding still: not a stall for the first 2 closed steps, then one
+    assert [_at(signal, [0, 0, 1], [0, 0, 1], gripper_now=CLOSED, gripper_plan=CLOSED) for _ in range(3)] == [
+        False,
+        False,
+        True,
+    ]
+    assert not _at(signal, [0, 0, 1], [0, 0, 1.02], gripper_now=CLOSED, gripper_plan=CLOSED)  # lifting: moving
+    assert not _at(signal, [0, 0, 1], [0.02, 0, 1])  # open (moving): the count of closed steps restarts
+    assert not _at(signal, [0, 0, 1], [0, 0, 1], gripper_now=CLOSED, gripper_plan=CLOSED)
+    signal.reset([0])
+    off = make_signal("stall", tiny_policy(), StallConfig(patience=1))  # off by default: closed is never stuck
+    off.calibration = {"threshold": 0.5, "stride": 0.01}
+    assert not any(_at(off, [0, 0, 1], [0, 0, 1], gripper_now=CLOSED, gripper_plan=CLOSED) for _ in range(40))
+
+
 def test_without_reask_undo_a_plan_back_is_only_scored_for_a_stall():
     signal = make_signal("stall", tiny_policy(), StallConfig(patience=1))
     signal.calibration = {"threshold": 0.5, "stride": 0.01}
@@ -185,7 +218,18 @@ def test_without_reask_undo_a_plan_back_is_only_scored_for_a_stall():
     assert not _at(signal, [0.03, 0, 1], [0.015, 0, 1])
 
 
-@pytest.mark.parametrize("bad", [{"reask_undo": "yes"}, {"undo_min": 0}, {"undo_min": -0.01}, {"undo_min": True}])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"reask_undo": "yes"},
+        {"undo_min": 0},
+        {"undo_min": -0.01},
+        {"undo_min": True},
+        {"closed_grace": -1},
+        {"closed_grace": 1.5},
+        {"closed_grace": True},
+    ],
+)
 def test_reask_undo_settings_are_checked(bad):
     with pytest.raises(SignalError):
         StallConfig(**bad)
