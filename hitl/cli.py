@@ -20,7 +20,8 @@ Benchmarks, reports and figures (``report_commands``, ``bench_commands``, ``cons
 code is in ``bench/``):
   bench         uncertainty, signals, fleet, api, loop, finetune-load, hitl, hitl-service, finetune,
                 console: each prints its measurements as JSON
-  report        sanity (the paper's sanity checks), separation (every signal's AUROC)
+  report        sanity (the paper's sanity checks), separation (every signal's AUROC), novelty (how far
+                states lie outside a policy's training range)
   plot          uncertainty: figures of U along rollouts
   docs          screenshots: the console's pictures, in headless Chromium
 """

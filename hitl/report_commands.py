@@ -144,6 +144,17 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _write_report(report, out: Path | None) -> int:
+    """Writes ``report`` (a ``to_dict``/``markdown`` report) as JSON to ``out``, with the command that
+    made it, and prints its table."""
+    doc = {"command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]), **report.to_dict()}
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        Path(out).write_text(json.dumps(doc, indent=2) + "\n")
+    print(report.markdown())
+    return 0
+
+
 def _cmd_separation(args: argparse.Namespace) -> int:
     set_threads(args)
     from bench.separation import shift_separation
@@ -163,12 +174,19 @@ def _cmd_separation(args: argparse.Namespace) -> int:
         args.signals,
         progress=not args.quiet,
     )
-    doc = {"command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]), **report.to_dict()}
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(doc, indent=2) + "\n")
-    print(report.markdown())
-    return 0
+    return _write_report(report, args.out)
+
+
+def _cmd_novelty(args: argparse.Namespace) -> int:
+    set_threads(args)
+    from bench.novelty import task_novelty
+    from policy.checkpoint import load_policy
+    from policy.signals.spread_stall import SpreadStallConfig
+
+    policy, _ = load_policy(args.policy)
+    gate = args.gate if args.gate is not None else SpreadStallConfig().novelty_gate
+    report = task_novelty(policy, args.policy, args.tasks, args.episodes, args.seed, gate, progress=not args.quiet)
+    return _write_report(report, args.out)
 
 
 def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
@@ -219,6 +237,16 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     q.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all)")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_separation)
+    q = what.add_parser("novelty", help="how far each task's states lie outside the policy's training range")
+    q.add_argument("--policy", required=True, type=Path)
+    q.add_argument("--tasks", nargs="+", required=True)
+    q.add_argument("--episodes", type=positive_int, default=8, help="rollouts per task")
+    q.add_argument("--seed", type=int, default=2000, help="first seed (default: the development seeds)")
+    q.add_argument("--gate", type=float, default=None, help="default: spread-stall's novelty_gate")
+    q.add_argument("--out", type=Path, help="JSON file to write (the markdown table is printed)")
+    q.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all)")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_novelty)
 
     p = sub.add_parser("bench", help="speed measurements, printed as JSON")
     what = p.add_subparsers(dest="target", required=True)

@@ -122,6 +122,7 @@ class RobotStep:
     mode: Mode  # the mode after this step
     asked: bool = False
     asked_by: str | None = None  # the asking signal's name, or WATCHDOG
+    why: str | None = None  # the asking signal's words for it (``AssistanceSignal.explain``)
     returned: bool = False
     scores: dict[str, float] = field(default_factory=dict)
     wants: dict[str, bool] = field(default_factory=dict)
@@ -369,6 +370,8 @@ class Controller:
             elif (by := self._asks(r, frame, asking is not None and bool(asking[j]))) is not None:
                 self.ask(rid, frame.hold)
                 step = RobotStep(rid, r.hold.copy(), keys.SOURCE_HOLD, r.mode, asked=True, asked_by=by)
+                explain = getattr(self.signals.get(by), "explain", None)  # optional for duck-typed signals
+                step.why = explain(scores[by], j) if explain is not None else None
             else:
                 r.cooldown = max(0, r.cooldown - 1)
                 step = RobotStep(rid, r.queue.popleft(), keys.SOURCE_POLICY, r.mode)

@@ -260,7 +260,8 @@ class ControlLoop:
                 self.queue.open(robot.id, 1.0, 1.0, f"watchdog: {f.clock} of {f.horizon} steps without success")
             else:
                 value, threshold = step.scores[asking], robot.slot.controller.signals[asking].threshold
-                self.queue.open(robot.id, value, threshold, f"{asking} score {value:.3g} over {threshold:.3g}")
+                why = step.why or f"score {value:.3g} over {threshold:.3g}"
+                self.queue.open(robot.id, value, threshold, f"{asking}: {why}")
         if step.returned:
             self._hand_back(robot)
 

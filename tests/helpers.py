@@ -41,17 +41,32 @@ def tiny_policy(task: str = "lift-cube") -> DiffusionPolicy:
     return p.eval()
 
 
-def tiny_policy_folder(folder, task: str, threshold: float):
-    """``tiny_policy`` saved as a policy folder with ``threshold`` as its calibration, for ``denoising``
-    (calibration.json) and for ``spread`` (its signal folder, spread in the action space's own units)."""
+def save_tiny_signals(policy, folder, threshold: float, info: dict | None = None) -> None:
+    """``spread`` (in the action space's own units) with ``threshold``, and the fleet's default,
+    ``spread-stall``, that asks as that ``spread`` does: its gate is never passed, so every scene counts
+    as familiar (the untrained policy's observations lie anywhere)."""
     from policy.signals import make_signal, save_signal
 
+    spread_cal = {"threshold": threshold, "quantile": 0.95, "samples": 0, "spread_scale": 1.0}
+    spread = make_signal("spread", policy, {"num_samples": 8})
+    spread.calibration = spread_cal
+    save_signal(spread, folder, info)
+    default = make_signal("spread-stall", policy, {"num_samples": 8, "novelty_gate": 1e9})
+    default.calibration = {
+        "threshold": 1.0,
+        "spread": spread_cal,
+        "stall": {"threshold": 0.5, "stride": 0.01},
+    }
+    save_signal(default, folder, info)
+
+
+def tiny_policy_folder(folder, task: str, threshold: float):
+    """``tiny_policy`` saved as a policy folder with ``threshold`` as its calibration, for ``denoising``
+    (calibration.json), ``spread`` and ``spread-stall`` (``save_tiny_signals``)."""
     policy = tiny_policy(task)
     save_policy(policy, folder, {"task": task})
     save_calibration(folder, {"threshold": threshold, "quantile": 0.95, "samples": 0})
-    spread = make_signal("spread", policy, {"num_samples": 8})
-    spread.calibration = {"threshold": threshold, "quantile": 0.95, "samples": 0, "spread_scale": 1.0}
-    save_signal(spread, folder, {"command": "tests.helpers.tiny_policy_folder"})
+    save_tiny_signals(policy, folder, threshold, {"command": "tests.helpers.tiny_policy_folder"})
     return folder
 
 
@@ -180,8 +195,7 @@ class KinematicTask:
 def finetunable_policy_folder(root, task: str = "lift-cube"):
     """``tiny_policy`` as a policy folder a fine-tuning job can use: pretrained (on paper) on 5 synthetic
     episodes under ``root/demos`` (4 training, 1 validation, as its config.json says), with a
-    calibration and a ``spread`` signal to recalibrate."""
-    from policy.signals import make_signal, save_signal
+    calibration and the signals of ``save_tiny_signals`` to recalibrate."""
     from storage import keys
     from storage.episodes import EpisodeWriter
 
@@ -212,9 +226,7 @@ def finetunable_policy_folder(root, task: str = "lift-cube"):
     save_calibration(
         folder, {"threshold": 1e9, "quantile": 0.95, "samples": 0, "uncertainty": {"num_samples": 16, "max_modes": 2}}
     )
-    spread = make_signal("spread", policy, {"num_samples": 8})
-    spread.calibration = {"threshold": 1e9, "quantile": 0.95, "samples": 0, "spread_scale": 1.0}
-    save_signal(spread, folder, {})
+    save_tiny_signals(policy, folder, 1e9, {})
     return folder
 
 

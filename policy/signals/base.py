@@ -225,6 +225,11 @@ class AssistanceSignal(ABC):
         """(B,) bool; the default rule is ``score > threshold``."""
         return np.asarray(scores.value) > self.threshold
 
+    def explain(self, scores: Scores, j: int) -> str | None:
+        """Why robot ``j`` of ``scores`` asks, in a few words for the operator (None: the score and the
+        threshold say it)."""
+        return None
+
     # -- auxiliary models (signals with ``has_models``) ----------------------------------------------
     def fit(self, data: CalibrationData, steps: int, progress: bool = True) -> dict:
         raise SignalError(f"signal {self.name!r} has no auxiliary models to train")

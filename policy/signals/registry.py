@@ -19,6 +19,7 @@ from policy.signals.critics import HulaSignal, ThriftySignal
 from policy.signals.reference import FullTeleopSignal, RandomSignal
 from policy.signals.sampling import DenoisingSignal, DiffDaggerSignal, OutputVarianceSignal, StacSignal
 from policy.signals.spread import SpreadSignal
+from policy.signals.spread_stall import SpreadStallSignal
 from policy.signals.stall import StallSignal
 
 SIGNALS: dict[str, type[AssistanceSignal]] = {
@@ -30,6 +31,7 @@ SIGNALS: dict[str, type[AssistanceSignal]] = {
     "hula-offline": HulaSignal,
     "spread": SpreadSignal,
     "stall": StallSignal,
+    "spread-stall": SpreadStallSignal,
     "full-teleop": FullTeleopSignal,
     "random": RandomSignal,
 }

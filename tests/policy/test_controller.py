@@ -37,6 +37,9 @@ class Scripted:
         pairs = zip(state.robot_ids, state.teleop, strict=True)
         return np.array([(rid in self.keep) if tele else (rid in self.ask) for rid, tele in pairs])
 
+    def explain(self, scores, j):
+        return f"told to ({scores.value[j]:.0f})"
+
 
 def _chunked(horizon=4, steps=2):
     torch.manual_seed(0)
@@ -134,6 +137,7 @@ def test_asking_holding_a_budgeted_takeover_and_a_fresh_history_on_hand_back():
     frames = _frames(tasks)
     asked = controller.step(frames)[0]
     assert asked.asked and asked.source == keys.SOURCE_HOLD and asked.mode == Mode.WAITING
+    assert asked.asked_by == "scripted" and asked.why == "told to (1)"  # the signal's words, for the queue
     np.testing.assert_allclose(asked.action, frames[0].hold)
     held = controller.step(frames)[0]  # nobody has claimed it: it holds, unscored
     assert held.source == keys.SOURCE_HOLD and not held.scored

@@ -112,8 +112,9 @@ def test_a_job_makes_a_recalibrated_evaluated_version_and_records_the_gate(store
     # a recalibrated threshold on the held-out episode, carried into the folder, its signals recalibrated
     cal = load_calibration(child.path)
     assert child.threshold == pytest.approx(cal["threshold"]) and cal["episodes"] == ["lift-cube_seed000004.mcap"]
-    assert child.calibration["episodes"] == cal["episodes"] and "spread" in cal["signals"]
-    assert (Path(child.path) / "signals" / "spread" / "config.json").is_file()
+    assert child.calibration["episodes"] == cal["episodes"] and {"spread", "spread-stall"} <= set(cal["signals"])
+    for name in ("spread", "spread-stall"):
+        assert (Path(child.path) / "signals" / name / "config.json").is_file()
     # evaluated on the training task and the takeovers' task, parent on the same seeds; a gate decision
     assert set(job.evaluation["candidate"]["tasks"]) == {"lift-cube", "lift-nut"}
     assert job.evaluation["parent"]["seed"] == job.evaluation["candidate"]["seed"]

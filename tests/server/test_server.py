@@ -77,7 +77,8 @@ def test_takeover_round_trip_records_a_segment(service):
     api, op = service.url + "/api/v1", _h(service, "operator")
     wait_for(lambda: _robot(service, 0)["mode"] == "waiting")
     queue = httpx.get(api + "/assistance", headers=_h(service, "viewer")).json()
-    assert any(r["robot_id"] == 0 for r in queue)
+    [request] = [r for r in queue if r["robot_id"] == 0]
+    assert request["reason"].startswith("spread-stall: the policy is unsure: spread ")  # the signal's own words
     before = _robot(service, 0)
     claim = httpx.post(api + "/robots/0/claim", headers=op)
     assert claim.status_code == 200, claim.text
@@ -125,8 +126,8 @@ def test_takeover_round_trip_records_a_segment(service):
     assert obs.shape[0] == labels.shape[0] == 3 and np.isfinite(labels).all()
     assert segment.meta["robot"] == 0 and segment.end["status"] == "closed"
     assert [s["command"]["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
-    # every score but the denoising U (recorded on its own): the asking signal (spread) and the shadows
-    assert all(set(s["shadow"]) == {"spread", "output-variance", "random"} for s in segment.steps)
+    # every score but the denoising U (recorded on its own): the asking signal (the default) and the shadows
+    assert all(set(s["shadow"]) == {"spread-stall", "output-variance", "random"} for s in segment.steps)
     fields = segment.fields
     assert len(fields) == 3 and len(fields[0]["entities"][0]["arrows"]) > 0  # the vector field, for Foxglove
     assert before["episode_id"] == start["episode_id"]

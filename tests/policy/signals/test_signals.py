@@ -22,6 +22,7 @@ CALIBRATION_SAMPLES = {
     "hula-offline": 12,
     "spread": 12,
     "stall": None,  # the validation steps whose gripper is open now and in the policy's sampled action
+    "spread-stall": 12,  # spread's samples: every validation step
     "full-teleop": 0,
     "random": 0,
 }
@@ -34,6 +35,7 @@ FAST = {  # keep every auxiliary training and calibration tiny
     "hula-offline": {"hidden": [16], "steps": 30},
     "spread": {"num_samples": 8, "noise_step": 10},
     "stall": {"calibration_batch": 5},
+    "spread-stall": {"num_samples": 8, "noise_step": 10},
     "full-teleop": {},
     "random": {"rate": 0.5},
 }

@@ -1,0 +1,192 @@
+"""``spread-stall``: the fleet's asking signal. Where the scene is one the policy knows, it asks when
+the policy is unsure (``spread``); where the scene is new, it asks when the policy is stuck
+(``stall``, with ``reask_undo``).
+
+Why (docs/signals.md, "spread-stall"; docs/benchmarks/hitl.md):
+
+- ``spread`` reads the denoising field. On the scenes the policy was trained on it finds the states
+  where its actions disagree: the drawer to choose, the cup's blind insertion. But on a scene outside
+  its training range the field is extrapolation. On lift-hammer, with the object-frame lift policy,
+  the field term alone is about 500 times its median on the validation demonstrations at every step
+  of the episode, the approach (which the policy does well) included, so ``spread`` asks from the
+  first step and the operator drives the whole episode.
+- ``stall`` does not read the field (here with ``reask_undo``, so that the policy cannot undo a
+  takeover, and ``closed_grace``, so that a grasp that goes nowhere asks too). It asks when the
+  policy stops making progress with the gripper open: on an unseen object, above it, at the grasp it
+  does not know. On the trained scenes it hardly
+  asks at all (0.6% of lift-cube steps), and it misses the drawer robot that opens the wrong drawer
+  without stalling.
+
+So the scene decides which one asks. A robot's scene is *new* once the observation lies outside the
+policy's training range by more than ``novelty_gate`` (``spread``'s novelty term: how far outside,
+in units of the range, averaged over dimensions). Measured on development seeds (docs/signals.md,
+"spread-stall"): at most 0.048 on the scenes the policies were trained for (lift-cube, cup-stack and
+open-drawer, failed episodes included), 0.36 to 0.56 at every step on the unseen objects. The gate,
+0.15, sits between them with a factor of about 3 to each side. The decision is kept to the end of the
+episode: the object does not change during it, and a robot that switched signals midway would be
+judged by two rules in one takeover. ``reset`` forgets it.
+
+The score is the active signal's score over its own threshold, so the threshold is 1: a score of 2
+means twice the calibrated level, whichever signal asks. That makes scores comparable across tasks
+for the queue. The sweep of ``hitl bench hitl`` scales both thresholds together. Cost: ``spread``'s
+network call; ``stall`` reads the action the controller already sampled.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from policy.signals.base import (
+    AssistanceSignal,
+    CalibrationData,
+    Patience,
+    PerRobot,
+    Scores,
+    SignalConfig,
+    SignalError,
+    SignalInput,
+    TriggerState,
+    check_positive_int,
+    check_quantile,
+)
+from policy.signals.spread import SpreadConfig, SpreadSignal
+from policy.signals.stall import StallConfig, StallSignal
+
+
+@dataclass(frozen=True)
+class SpreadStallConfig(SignalConfig):
+    """novelty_gate: observation novelty beyond which a robot's scene is new (``stall`` asks); the
+    others configure the two signals as their own configs do (``spread_quantile``, ``stall_quantile``:
+    their thresholds' quantiles on the validation demonstrations)."""
+
+    novelty_gate: float = 0.15
+    spread_quantile: float = 0.95
+    spread_patience: int = 1  # consecutive steps over the threshold before spread asks
+    num_samples: int = 32
+    noise_step: int = 60
+    stall_quantile: float = 0.95
+    patience: int = 3
+    reask_undo: bool = True
+    undo_min: float = 0.01  # metres
+    closed_grace: int = 30  # steps; the 200 lift demonstrations hold the gripper closed for at most 28
+
+    def __post_init__(self) -> None:
+        g = self.novelty_gate
+        if not (isinstance(g, int | float) and not isinstance(g, bool) and math.isfinite(g) and g > 0):
+            raise SignalError(f"novelty_gate must be a finite number > 0, got {g!r}")
+        check_quantile("spread_quantile", self.spread_quantile)
+        check_quantile("stall_quantile", self.stall_quantile)
+        check_positive_int("patience", self.patience)
+        check_positive_int("spread_patience", self.spread_patience)
+        self.spread_config()  # each signal checks its own settings
+        self.stall_config()
+
+    def spread_config(self) -> SpreadConfig:
+        return SpreadConfig(
+            seed=self.seed, num_samples=self.num_samples, noise_step=self.noise_step, quantile=self.spread_quantile
+        )
+
+    def stall_config(self) -> StallConfig:
+        return StallConfig(
+            seed=self.seed,
+            quantile=self.stall_quantile,
+            patience=self.patience,
+            reask_undo=self.reask_undo,
+            undo_min=self.undo_min,
+            closed_grace=self.closed_grace,
+        )
+
+
+FLOOR = 1e-9  # a threshold at or under 0 counts as this: any positive score is far over it
+
+
+def _over(score: np.ndarray, threshold: float) -> np.ndarray:
+    """The score in units of its threshold. A calibration can give 0 (``stall``: the policy never stood
+    still on the validation steps); the score is then divided by ``FLOOR``, so it stays finite."""
+    return score / (threshold if threshold > 0 else FLOOR)
+
+
+class SpreadStallSignal(AssistanceSignal):
+    name = "spread-stall"
+    Config = SpreadStallConfig
+
+    def __init__(self, policy, config=None) -> None:
+        super().__init__(policy, config)
+        self.spread = SpreadSignal(policy, self.config.spread_config())
+        self.stall = StallSignal(policy, self.config.stall_config())
+        self._new = PerRobot(bool)  # the robot's scene this episode is outside the training range
+        self._unsure = Patience(self.config.spread_patience)
+        self._parts: tuple[np.ndarray, Scores] | None = None  # the scored batch: robot ids, stall's scores
+
+    def reset(self, robot_ids: Iterable[int] | None = None) -> None:
+        ids = self._ids_for(robot_ids)
+        self.spread.reset(ids)
+        self.stall.reset(ids)
+        self._new.reset(ids)
+        self._unsure.reset(ids)
+
+    def _thresholds(self) -> tuple[float, float]:
+        """Each signal's own threshold (1, 1 before calibration: the scores in their own units)."""
+        if self.calibration is None:
+            return 1.0, 1.0
+        return float(self.calibration["spread"]["threshold"]), float(self.calibration["stall"]["threshold"])
+
+    def _sync(self) -> None:
+        """The two signals score with the calibration this one holds (loaded, calibrated or swept)."""
+        cal = self.calibration
+        self.spread.calibration = None if cal is None else cal["spread"]
+        self.stall.calibration = None if cal is None else cal["stall"]
+
+    def score(self, batch: SignalInput) -> Scores:
+        self._sync()
+        action = batch.action if batch.action is not None else self.sample_chunks(batch.obs, 1)[:, 0]
+        batch = SignalInput(batch.obs, batch.current, batch.robot_ids, action, batch.operator_action)
+        spread, stall = self.spread.score(batch), self.stall.score(batch)
+        novelty = np.asarray(spread.parts["novelty"], dtype=np.float64)
+        new = np.zeros(len(batch), dtype=bool)
+        for j, rid in enumerate(int(r) for r in batch.robot_ids):
+            if novelty[j] > self.config.novelty_gate:
+                self._new.set(rid, True)
+            new[j] = self._new.get(rid)
+        t_spread, t_stall = self._thresholds()
+        over_spread = _over(np.asarray(spread.value, dtype=np.float64), t_spread)
+        over_stall = _over(np.asarray(stall.value, dtype=np.float64), t_stall)
+        self._parts = (batch.robot_ids.copy(), stall)
+        parts = {
+            "new_scene": new.astype(np.float64),
+            "novelty": novelty,
+            "spread": over_spread,
+            "stall": over_stall,
+        }
+        return Scores(np.where(new, over_stall, over_spread), parts)
+
+    def wants_help(self, scores: Scores, state: TriggerState) -> np.ndarray:
+        if self._parts is None or not np.array_equal(self._parts[0], state.robot_ids):
+            raise SignalError("spread-stall: wants_help must follow score on the same robots")
+        t = self.threshold
+        new = np.asarray(scores.parts["new_scene"]) > 0
+        stuck = self.stall.trigger(np.asarray(scores.parts["stall"]) > t, self._parts[1], state)
+        unsure = self._unsure.update(np.asarray(scores.parts["spread"]) > t, state.robot_ids)
+        return np.where(new, stuck, unsure)
+
+    def explain(self, scores: Scores, j: int) -> str | None:
+        if scores.parts["new_scene"][j] > 0:
+            return f"new scene, the policy is stuck: stall {scores.parts['stall'][j]:.2g}× its threshold"
+        return f"the policy is unsure: spread {scores.parts['spread'][j]:.3g}× its threshold"
+
+    def _calibrate(self, data: CalibrationData, progress: bool) -> dict:
+        spread = self.spread.calibrate(data, progress)
+        stall = self.stall.calibrate(data, progress)
+        return {
+            "threshold": 1.0,
+            "quantile": None,
+            "samples": int(spread["samples"]),
+            "source": "validation demonstrations: each signal's threshold, the score over it",
+            "novelty_gate": self.config.novelty_gate,
+            "spread": spread,
+            "stall": stall,
+        }
