@@ -175,6 +175,8 @@ class SpreadStallSignal(AssistanceSignal):
 
     def explain(self, scores: Scores, j: int) -> str | None:
         if scores.parts["new_scene"][j] > 0:
+            if not scores.parts["stall"][j] > self.threshold:  # reask_undo: the plan would undo a takeover
+                return "new scene, the policy would undo the operator's work"
             return f"new scene, the policy is stuck: stall {scores.parts['stall'][j]:.2g}× its threshold"
         return f"the policy is unsure: spread {scores.parts['spread'][j]:.3g}× its threshold"
 

@@ -75,7 +75,9 @@ def test_a_new_scene_keeps_the_operators_progress(monkeypatch):
     signal.wants_help(signal.score(batch), TriggerState(np.asarray([0]), np.asarray([True])))
     plan_back = torch.as_tensor(_action([0.015, 0, 1]))[None, None]
     back = SignalInput(torch.zeros(1, 1, 26), current, np.asarray([0]), action=plan_back)
-    assert signal.wants_help(signal.score(back), TriggerState.autonomous([0]))[0]
+    scores = signal.score(back)
+    assert signal.wants_help(scores, TriggerState.autonomous([0]))[0]
+    assert signal.explain(scores, 0) == "new scene, the policy would undo the operator's work"
 
 
 def test_the_sweep_scales_both_thresholds(monkeypatch):
