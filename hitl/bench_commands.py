@@ -176,7 +176,7 @@ def register(bench: argparse._SubParsersAction) -> None:
     )
     q.add_argument("--task", default="lift-hammer")
     q.add_argument("--policy", type=Path, default=Path("runs/lift-cube"))
-    q.add_argument("--signal", default="spread")
+    q.add_argument("--signal", default="spread-stall", help="default: the fleet's")
     q.add_argument("--episodes", type=int, default=8, help="robots, one episode each")
     q.add_argument("--budget", type=int, default=4)
     q.add_argument("--json", action="store_true", help="one line of JSON")
