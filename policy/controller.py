@@ -109,7 +109,8 @@ class RobotStep:
     """What the controller decided for one robot at one step.
 
     action: (10,) raw absolute action to send; source: ``keys.SOURCE_*``; asked: the robot asked for
-    help at this step (it now waits and holds), asked_by: what made it ask; returned: control went back
+    help at this step (it now waits and holds), asked_by: what made it ask, why: the asking signal's
+    words for it (``AssistanceSignal.explain``; None for the watchdog); returned: control went back
     to the policy after this step; scores / wants: every signal's score and decision (empty when the
     robot was not scored: waiting, or under teleop without a command); uncertainty: the denoising
     field when scored; obs: (H, obs_dim) the history the policy saw; current: (10,) the probe centre's
@@ -122,7 +123,7 @@ class RobotStep:
     mode: Mode  # the mode after this step
     asked: bool = False
     asked_by: str | None = None  # the asking signal's name, or WATCHDOG
-    why: str | None = None  # the asking signal's words for it (``AssistanceSignal.explain``)
+    why: str | None = None
     returned: bool = False
     scores: dict[str, float] = field(default_factory=dict)
     wants: dict[str, bool] = field(default_factory=dict)
