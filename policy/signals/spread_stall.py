@@ -7,9 +7,9 @@ Why (docs/signals.md, "spread-stall"; docs/benchmarks/hitl.md):
 - ``spread`` reads the denoising field. On the scenes the policy was trained on it finds the states
   where its actions disagree: the drawer to choose, the cup's blind insertion. But on a scene outside
   its training range the field is extrapolation. On lift-hammer, with the object-frame lift policy,
-  the field term alone is about 500 times its median on the validation demonstrations at every step
-  of the episode, the approach (which the policy does well) included, so ``spread`` asks from the
-  first step and the operator drives the whole episode.
+  ``spread`` wants help at every step of the episode, the approach (which the policy does well)
+  included (help rate 1.00, docs/results/signals/assist-stall-lift-hammer.json), so the operator
+  drives the whole episode.
 - ``stall`` does not read the field (here with ``reask_undo``, so that the policy cannot undo a
   takeover, and ``closed_grace``, so that a grasp that goes nowhere asks too). It asks when the
   policy stops making progress with the gripper open: on an unseen object, above it, at the grasp it
@@ -72,7 +72,7 @@ class SpreadStallConfig(SignalConfig):
     patience: int = 3
     reask_undo: bool = True
     undo_min: float = 0.01  # metres
-    closed_grace: int = 30  # steps; the 200 lift demonstrations hold the gripper closed for at most 28
+    closed_grace: int = 30  # steps: longer than a grasp and its lift hold the gripper closed
 
     def __post_init__(self) -> None:
         g = self.novelty_gate
@@ -143,8 +143,9 @@ class SpreadStallSignal(AssistanceSignal):
 
     def score(self, batch: SignalInput) -> Scores:
         self._sync()
-        action = batch.action if batch.action is not None else self.sample_chunks(batch.obs, 1)[:, 0]
-        batch = SignalInput(batch.obs, batch.current, batch.robot_ids, action, batch.operator_action)
+        if batch.action is None:  # both halves score the same sampled action
+            action = self.sample_chunks(batch.obs, 1)[:, 0]
+            batch = SignalInput(batch.obs, batch.current, batch.robot_ids, action, batch.operator_action)
         spread, stall = self.spread.score(batch), self.stall.score(batch)
         novelty = np.asarray(spread.parts["novelty"], dtype=np.float64)
         new = np.zeros(len(batch), dtype=bool)
