@@ -5,7 +5,8 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
-	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs clean
+	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
+	lift-baselines-hitl-docs resume-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -166,6 +167,28 @@ default-hitl-docs: install
 		> docs/results/hitl/default.json
 	$(BIN)/hitl bench signals --policy runs/lift-cube --signals denoising,spread,stall,spread-stall --task lift-hammer \
 		--quiet > docs/results/serving/signals-spread-stall.json
+
+# docs/benchmarks/hitl.md, "Every baseline on the bundled lift policy": the four trained baselines calibrated next to
+# the lift policy of `make policy-docs` (the object frame) and run on the lift shifts, evaluation seeds 1000-1019
+# (cells cached under runs/bench-hitl-lift; `spread-stall`, `spread`, `stall` and `denoising` on this policy are in
+# the default and object-frame sections). Each signal at its own calibration: the sweep of thresholds would take
+# about 2 h more. About 45 min on 2 cores.
+LIFT_BASELINES := output-variance diff-dagger thrifty hula-offline
+lift-baselines-hitl-docs: install
+	for s in $(LIFT_BASELINES); do $(BIN)/hitl train-signal --policy runs/lift-cube --signal $$s \
+		--data data/demos/lift-cube-dart --quiet || exit 1; done
+	$(BIN)/hitl bench hitl --tasks lift-nut lift-hammer lift-hook --false-alarm-task lift-cube --policy-root runs \
+		--signals $(LIFT_BASELINES) full-teleop --no-sweep --section lift-baselines --report docs/benchmarks/hitl.md \
+		--figures docs/figures --cache runs/bench-hitl-lift --jobs 2 --json --quiet > docs/results/hitl/lift-baselines.json
+
+# docs/benchmarks/hitl.md, "Do the policies resume after a few operator steps?": one takeover of 4 (and 16) operator
+# steps at a grid of policy steps, then the bundled cup-stack and drawer policies alone, development seeds
+# 2000-2011 (about 1 h on 2 cores).
+resume-docs: install
+	$(BIN)/hitl report resume --policy policies/cup-stack --at 0 40 80 120 160 200 240 --budgets 4 16 --episodes 12 \
+		--threads 2 --out docs/results/policy/resume-cup-stack.json --quiet
+	$(BIN)/hitl report resume --policy policies/open-drawer --at 0 10 20 40 80 --budgets 4 16 --episodes 12 \
+		--threads 2 --out docs/results/policy/resume-open-drawer.json --quiet
 
 # docs/benchmarks/service.md, "The loop": the demo fleet served with the operator bot helping, 10 minutes per
 # hand-back mode.

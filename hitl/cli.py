@@ -21,7 +21,8 @@ code is in ``bench/``):
   bench         uncertainty, signals, fleet, api, loop, finetune-load, hitl, hitl-service, finetune,
                 console: each prints its measurements as JSON
   report        sanity (the paper's sanity checks), separation (every signal's AUROC), novelty (how far
-                states lie outside a policy's training range)
+                states lie outside a policy's training range), resume (whether a policy finishes after
+                a few operator steps)
   plot          uncertainty: figures of U along rollouts
   docs          screenshots: the console's pictures, in headless Chromium
 """

@@ -9,7 +9,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from hitl.args import add_uncertainty_args, policy_with, positive_int, set_threads, uncertainty_config
+from hitl.args import add_uncertainty_args, non_negative_int, policy_with, positive_int, set_threads, uncertainty_config
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
@@ -189,6 +189,21 @@ def _cmd_novelty(args: argparse.Namespace) -> int:
     return _write_report(report, args.out)
 
 
+def _cmd_resume(args: argparse.Namespace) -> int:
+    set_threads(args)
+    from bench.resume import ResumeReport, task_resume
+    from policy.checkpoint import load_policy
+
+    policy, info = load_policy(args.policy)
+    task = args.task or info.get("task")
+    if not task:
+        raise SystemExit("hitl report resume: the policy names no task; give --task")
+    row = task_resume(
+        policy, str(args.policy), task, args.at, args.budgets, args.episodes, args.seed, progress=not args.quiet
+    )
+    return _write_report(ResumeReport([row]), args.out)
+
+
 def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     """Adds ``plot``, ``report`` and ``bench`` (with ``bench uncertainty``); returns ``bench``'s subparsers."""
     p = sub.add_parser("plot", help="write figures to docs/figures/")
@@ -247,6 +262,17 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     q.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all)")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_novelty)
+    q = what.add_parser("resume", help="one takeover of a few operator steps at each step k: does the policy finish?")
+    q.add_argument("--policy", required=True, type=Path)
+    q.add_argument("--task", default=None, help="default: the policy's task")
+    q.add_argument("--at", type=non_negative_int, nargs="+", required=True, help="policy steps of the takeover")
+    q.add_argument("--budgets", type=positive_int, nargs="+", default=[4], help="operator steps (default: 4)")
+    q.add_argument("--episodes", type=positive_int, default=8, help="episodes per takeover step")
+    q.add_argument("--seed", type=int, default=2000, help="first seed (default: the development seeds)")
+    q.add_argument("--out", type=Path, help="JSON file to write (the markdown table is printed)")
+    q.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all)")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_resume)
 
     p = sub.add_parser("bench", help="speed measurements, printed as JSON")
     what = p.add_subparsers(dest="target", required=True)

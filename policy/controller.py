@@ -27,7 +27,9 @@ Hand-back: ``budgeted`` returns control after ``budget`` operator steps (or soon
 or, with ``return_after``, after that many consecutive operator steps on which the asking signal no
 longer wants help (ThriftyDAgger's switch-back rule, or the score back under its threshold: the
 paper's continuous mode is ``return_after = 1``). After a hand-back the robot does not ask again for
-``cooldown`` policy steps. The ``watchdog`` makes a robot ask once per episode when it has used that
+``cooldown`` policy steps, unless the signal's request is ``urgent`` (``AssistanceSignal.urgent``: the
+policy's next step would undo the takeover, so holding the request back would lose the operator's
+work). The ``watchdog`` makes a robot ask once per episode when it has used that
 fraction of its horizon without success, whatever its signal says.
 
 Episodes: waiting for help holds the robot without using up the horizon (hold steps do not count,
@@ -69,7 +71,8 @@ class ControllerConfig:
     the operator hands back); return_after: also hand back after this many consecutive operator steps
     on which the asking signal no longer wants help (None: never automatically); cooldown: after a
     hand-back, this many of the policy's steps on which the robot does not ask again (0: it may ask at
-    once), so that a score that keeps re-triggering cannot flood the queue; watchdog: a robot that has
+    once; urgent requests excepted), so that a score that keeps re-triggering cannot flood the queue;
+    watchdog: a robot that has
     used this fraction of its episode's horizon without success asks for help once, whatever its
     signal says (None: only the signal asks); assistance: False scores every signal but never asks
     (shadow runs); seed: the sampling noise's seed; batch_invariant: run the networks robot by robot,
@@ -295,10 +298,15 @@ class Controller:
             self._score_and_decide(scored, frames, out, send)
         return {rid: out[rid] for rid in frames}
 
-    def _asks(self, r: _Robot, frame: RobotFrame, signal_wants: bool) -> str | None:
+    def _asks(self, r: _Robot, frame: RobotFrame, signal_wants: bool, urgent: bool = False) -> str | None:
         """Who makes an autonomous robot ask now: its signal, or the watchdog (once per episode, when
-        the robot has used ``watchdog`` of its horizon); None while a cooldown runs, or in shadow runs."""
-        if not self.config.assistance or r.cooldown > 0:
+        the robot has used ``watchdog`` of its horizon); None in shadow runs, and while a cooldown runs
+        unless the signal's request is ``urgent`` (the policy's next step would undo a takeover)."""
+        if not self.config.assistance:
+            return None
+        if signal_wants and urgent:
+            return self.asking
+        if r.cooldown > 0:
             return None
         if signal_wants:
             return self.asking
@@ -311,6 +319,11 @@ class Controller:
             r.watched = True
             return WATCHDOG
         return None
+
+    def _urgent(self, state: TriggerState) -> np.ndarray:
+        """The asking signal's ``urgent`` requests (none for a duck-typed signal without the method)."""
+        urgent = getattr(self.signals[self.asking], "urgent", None)
+        return np.asarray(urgent(state), dtype=bool) if urgent is not None else np.zeros(len(state.robot_ids), bool)
 
     def _score_and_decide(
         self, ids: list[int], frames: Mapping[int, RobotFrame], out: dict[int, RobotStep], send: ActionSink | None
@@ -352,6 +365,7 @@ class Controller:
             if s.calibration is not None
         }
         asking = wants.get(self.asking) if self.asking is not None and self.config.assistance else None
+        urgent = self._urgent(state) if asking is not None else None
         calm_steps = self.config.calm_steps
         field = next((sc.detail for sc in scores.values() if isinstance(sc.detail, UncertaintyBatch)), None)
         for j, (rid, r) in enumerate(zip(ids, robots, strict=True)):
@@ -368,7 +382,11 @@ class Controller:
                 if done:
                     self.release(rid)
                     step.returned = True
-            elif (by := self._asks(r, frame, asking is not None and bool(asking[j]))) is not None:
+            elif (
+                by := self._asks(
+                    r, frame, asking is not None and bool(asking[j]), urgent is not None and bool(urgent[j])
+                )
+            ) is not None:
                 self.ask(rid, frame.hold)
                 step = RobotStep(rid, r.hold.copy(), keys.SOURCE_HOLD, r.mode, asked=True, asked_by=by)
                 explain = getattr(self.signals.get(by), "explain", None)  # optional for duck-typed signals

@@ -114,7 +114,11 @@ class Settings(BaseSettings):
         None, ge=1, description="also hand back after K operator steps on which the signal no longer wants help"
     )
     cooldown_steps: int = Field(
-        10, ge=0, le=100_000, description="after a hand-back, policy steps on which the robot does not ask again"
+        10,
+        ge=0,
+        le=100_000,
+        description="after a hand-back, policy steps on which the robot does not ask again (urgent requests excepted:"
+        " the policy's next step would undo the takeover)",
     )
     watchdog: float | None = Field(
         None,

@@ -230,6 +230,12 @@ class AssistanceSignal(ABC):
         threshold say it)."""
         return None
 
+    def urgent(self, state: TriggerState) -> np.ndarray:
+        """(B,) bool, for the robots of the last ``wants_help`` (``state``): the request cannot wait,
+        because the policy's next step would undo an operator's work. A fleet's cooldown after a
+        hand-back holds back every other request, not these. The default: none is."""
+        return np.zeros(len(state.robot_ids), dtype=bool)
+
     # -- auxiliary models (signals with ``has_models``) ----------------------------------------------
     def fit(self, data: CalibrationData, steps: int, progress: bool = True) -> dict:
         raise SignalError(f"signal {self.name!r} has no auxiliary models to train")

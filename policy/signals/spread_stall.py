@@ -121,6 +121,7 @@ class SpreadStallSignal(AssistanceSignal):
         self._new = PerRobot(bool)  # the robot's scene this episode is outside the training range
         self._unsure = Patience(self.config.spread_patience)
         self._parts: tuple[np.ndarray, Scores] | None = None  # the scored batch: robot ids, stall's scores
+        self._new_now: np.ndarray | None = None  # the last wants_help: which robots' scenes are new
 
     def reset(self, robot_ids: Iterable[int] | None = None) -> None:
         ids = self._ids_for(robot_ids)
@@ -172,11 +173,19 @@ class SpreadStallSignal(AssistanceSignal):
         new = np.asarray(scores.parts["new_scene"]) > 0
         stuck = self.stall.trigger(np.asarray(scores.parts["stall"]) > t, self._parts[1], state)
         unsure = self._unsure.update(np.asarray(scores.parts["spread"]) > t, state.robot_ids)
+        self._new_now = new
         return np.where(new, stuck, unsure)
+
+    def urgent(self, state: TriggerState) -> np.ndarray:
+        """``stall``'s urgent requests (``reask_undo``), where the scene is new and so ``stall`` asks."""
+        urgent = self.stall.urgent(state)  # raises unless wants_help ran on these robots
+        if self._new_now is None or len(self._new_now) != len(urgent):
+            raise SignalError("spread-stall: urgent must follow wants_help on the same robots")
+        return urgent & self._new_now
 
     def explain(self, scores: Scores, j: int) -> str | None:
         if scores.parts["new_scene"][j] > 0:
-            if not scores.parts["stall"][j] > self.threshold:  # reask_undo: the plan would undo a takeover
+            if not scores.parts["stall"][j] > self.threshold:  # reask_undo (urgent): the plan would undo a takeover
                 return "new scene, the policy would undo the operator's work"
             return f"new scene, the policy is stuck: stall {scores.parts['stall'][j]:.2g}× its threshold"
         return f"the policy is unsure: spread {scores.parts['spread'][j]:.3g}× its threshold"

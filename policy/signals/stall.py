@@ -42,8 +42,9 @@ it cannot lift, then stands still, closed, to the end of the episode (lift-hook,
 2006). With ``closed_grace`` = n, standing still counts again once the gripper has been closed for
 more than n scored steps in a row.
 
-Both are off by default, as every ``stall`` result recorded before them was; a fleet's cooldown
-after a hand-back (``cooldown_steps``) holds back their requests too.
+Both are off by default, as every ``stall`` result recorded before them was. ``reask_undo``'s requests
+are ``urgent``: a fleet's cooldown after a hand-back (``cooldown_steps``) does not hold them back, since
+the policy step it would let run is the one that undoes the takeover.
 """
 
 from __future__ import annotations
@@ -121,6 +122,7 @@ class StallSignal(AssistanceSignal):
         self._grasp_kept = PerRobot(bool)  # the gripper is closed as an operator left it
         self._closed_for = PerRobot(int)  # consecutive scored steps with the gripper closed
         self._where: tuple[np.ndarray, ...] | None = None  # the scored batch's geometry and gripper
+        self._urgent: tuple[np.ndarray, np.ndarray] | None = None  # the last trigger's robot ids, reask_undo's asks
 
     def reset(self, robot_ids: Iterable[int] | None = None) -> None:
         ids = self._ids_for(robot_ids)
@@ -169,6 +171,8 @@ class StallSignal(AssistanceSignal):
         that holds a ``stall`` applies its own threshold): ``patience`` steps in a row, and with
         ``reask_undo`` the checks after a takeover. ``scores`` are this signal's, from ``score``."""
         out = self._run.update(np.asarray(over, dtype=bool), state.robot_ids)
+        urgent = np.zeros(len(out), dtype=bool)
+        self._urgent = (state.robot_ids.copy(), urgent)
         if not self.config.reask_undo:
             return out
         where = self._where
@@ -185,16 +189,22 @@ class StallSignal(AssistanceSignal):
                 self._taken_over.set(rid, False)
                 self._grasp_kept.set(rid, bool(closed[j]))
                 if opened[j] and asked is not None and self._heads_back(now[j], plan[j], asked):
-                    out[j] = True
+                    out[j] = urgent[j] = True
                     continue  # asked again: the pose it first asked at stays the reference
             if not closed[j]:
                 self._grasp_kept.set(rid, False)
             elif self._grasp_kept.get(rid) and opens[j]:
-                out[j] = True  # the policy would let go of the operator's grasp
+                out[j] = urgent[j] = True  # the policy would let go of the operator's grasp
                 continue
             if out[j]:
                 self._asked_at.set(rid, now[j].copy())
         return out
+
+    def urgent(self, state: TriggerState) -> np.ndarray:
+        """The robots that ``reask_undo`` made ask at the last ``trigger``."""
+        if self._urgent is None or not np.array_equal(self._urgent[0], state.robot_ids):
+            raise SignalError("stall: urgent must follow wants_help on the same robots")
+        return self._urgent[1].copy()
 
     def _heads_back(self, now: np.ndarray, plan: np.ndarray, asked: np.ndarray) -> bool:
         """Across the table or up and down, taken apart: the operator moved the robot more than

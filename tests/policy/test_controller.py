@@ -23,7 +23,7 @@ class Scripted:
     threshold = 0.5
 
     def __init__(self):
-        self.ask, self.keep = set(), set()
+        self.ask, self.keep, self.now = set(), set(), set()
         self.seen_teleop = []
 
     def reset(self, robot_ids=None):
@@ -39,6 +39,9 @@ class Scripted:
 
     def explain(self, scores, j):
         return f"told to ({scores.value[j]:.0f})"
+
+    def urgent(self, state):
+        return np.array([rid in self.now for rid in state.robot_ids])
 
 
 def _chunked(horizon=4, steps=2):
@@ -183,6 +186,31 @@ def test_continuous_mode_returns_control_when_the_operator_or_the_switch_back_ru
     assert controller.mode(4) == Mode.AUTONOMOUS
     signal.ask.add(4)  # it wants help again at once: the cooldown holds the request back two steps
     assert [controller.step(frames)[4].asked for _ in range(3)] == [False, False, True]
+
+
+def test_an_urgent_request_is_not_held_back_by_the_cooldown():
+    policy, signal = tiny_policy(), Scripted()
+    config = ControllerConfig(budget=1, cooldown=5)
+    controller = Controller(policy, {"scripted": signal}, "scripted", KinematicTask().action_space, config)
+    controller.reset(0, seed=1)
+    frames = _frames(_tasks({0: 1}))
+    controller.ask(0, frames[0].hold)
+    controller.take_over(0)
+    assert controller.step(frames, {0: TeleopCommand((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1.0)})[0].returned
+    signal.ask.add(0)
+    assert not controller.step(frames)[0].asked  # the cooldown holds an ordinary request back
+    signal.now.add(0)  # the policy's next step would undo the operator's work
+    st = controller.step(frames)[0]
+    assert st.asked and st.asked_by == "scripted" and st.source == keys.SOURCE_HOLD
+    signal.now.clear()
+    controller.release(0)
+    assert not controller.step(frames)[0].asked
+    shadow = Controller(
+        policy, {"scripted": signal}, "scripted", KinematicTask().action_space, ControllerConfig(assistance=False)
+    )
+    shadow.reset(0, seed=1)
+    signal.now.add(0)
+    assert not shadow.step(frames)[0].asked  # a shadow run never asks, urgent or not
 
 
 def test_a_shadow_run_scores_but_never_asks():

@@ -78,6 +78,13 @@ def test_a_new_scene_keeps_the_operators_progress(monkeypatch):
     scores = signal.score(back)
     assert signal.wants_help(scores, TriggerState.autonomous([0]))[0]
     assert signal.explain(scores, 0) == "new scene, the policy would undo the operator's work"
+    assert signal.urgent(TriggerState.autonomous([0]))[0]  # a cooldown does not hold it back
+
+
+def test_on_a_familiar_scene_no_request_is_urgent(monkeypatch):
+    signal, step = _signal(monkeypatch)
+    assert step(spread=6.0, novelty=0.0, motion=0.0)[1]
+    assert not signal.urgent(TriggerState.autonomous([0]))[0]
 
 
 def test_the_sweep_scales_both_thresholds(monkeypatch):

@@ -177,6 +177,23 @@ def test_a_takeover_that_moved_the_robot_less_than_undo_min_or_closed_the_grippe
     assert not _at(signal, [0, 0, 0.98], [0, 0, 1.0], gripper_now=CLOSED, gripper_plan=CLOSED)  # lifts: runs
 
 
+def _urgent(signal):
+    return bool(signal.urgent(TriggerState(np.asarray([0]), np.asarray([False])))[0])
+
+
+def test_only_a_request_that_keeps_the_operators_work_is_urgent():
+    signal = _undo_signal()
+    assert _at(signal, [0, 0, 1], [0, 0, 1]) and not _urgent(signal)  # a stall can wait out a cooldown
+    _at(signal, [0.03, 0, 1], [0.0, 0, 1], teleop=True)
+    assert _at(signal, [0.03, 0, 1], [0.015, 0, 1]) and _urgent(signal)  # heading back: cannot wait
+    _at(signal, [0.03, 0, 0.98], [0.03, 0, 0.98], gripper_now=CLOSED, teleop=True)
+    assert not _at(signal, [0.03, 0, 0.98], [0.03, 0, 0.99], gripper_now=CLOSED, gripper_plan=CLOSED)
+    assert not _urgent(signal)
+    assert _at(signal, [0.03, 0, 0.99], [0.03, 0, 1.0], gripper_now=CLOSED, gripper_plan=OPEN) and _urgent(signal)
+    with pytest.raises(SignalError, match="same robots"):
+        signal.urgent(TriggerState(np.asarray([5]), np.asarray([False])))
+
+
 def test_while_the_operators_grasp_holds_no_later_policy_step_lets_go():
     signal = _undo_signal()
     assert _at(signal, [0, 0, 1], [0, 0, 1])
