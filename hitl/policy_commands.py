@@ -19,6 +19,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from policy.diffusion_policy import DiffusionPolicy
     from policy.frames import ObjectFrame
     from policy.train import TrainConfig, train_policy
+    from sim.demos import read_recipe
     from sim.registry import make_task
     from storage.dataset import DatasetConfig, load_dataset
     from storage.paths import portable
@@ -86,6 +87,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
             "val_fraction": ds.config.val_fraction,
             "steps": int(len(ds.obs)),
             "excluded": ds.excluded,
+            # how to record the folder again (a fine-tuning job does, on a machine without it)
+            "recipe": recipe.to_dict() if (recipe := read_recipe(args.data)) is not None else None,
         },
         "normalized_over": {  # the bounds themselves are in "normalization"
             "observation": "the training data's min/max per dimension",

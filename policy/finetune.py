@@ -119,8 +119,8 @@ def pretraining_split(policy: DiffusionPolicy, info: dict, folder: str | Path) -
         raise FinetuneDataError("the policy's config.json lists no training episodes: which data pretrained it?")
     if not folder.is_dir():
         raise FinetuneDataError(
-            f"pretraining data {folder} not found (named in the policy's config.json): record it again with the "
-            "command in that folder's README or pass --pretrain-data"
+            f"pretraining data {folder} not found (named in the policy's config.json, which holds no recipe to "
+            "record it again): record it with `hitl demos` as it was recorded, or pass --pretrain-data"
         )
     cfg = policy.config
     ds = load_dataset(folder, DatasetConfig(obs_horizon=cfg.obs_horizon, action_horizon=cfg.action_horizon))

@@ -40,6 +40,7 @@ from server import registry
 from server.db import FinetuneJob, PolicyVersion, utcnow
 from server.finetune_plan import JobRequest, Plan, select_segments
 from server.recording import resolve
+from sim.demos import DemoRecipe, ensure_demos
 from storage import keys, paths
 from storage.dataset import DatasetConfig, load_dataset
 from storage.takeovers import load_takeovers
@@ -102,6 +103,29 @@ class Evaluation:
     doc: dict  # {"parent": ..., "candidate": ...}: what the job's row and the registry record
 
 
+def _record_pretraining(info: dict, folder: Path, progress: bool, report: Callable[[str], None], job_id: int) -> None:
+    """Records the parent's pretraining demonstrations where its config.json says they go, seeded as
+    its recipe says, when this machine lacks them (a fresh clone: ``data/`` is not in the repository).
+    A parent without a recipe (trained before recipes, or on data ``hitl demos`` did not make) needs
+    the folder, or ``--pretrain-data``: ``pretraining_split`` then says so."""
+    doc = info.get("dataset", {}).get("recipe")
+    if doc is None:
+        return
+    try:
+        recipe = DemoRecipe.from_dict(doc)
+    except ValueError as exc:
+        raise FinetuneDataError(
+            f"the policy's config.json holds an unusable recipe for its pretraining data: {exc}"
+        ) from None
+    missing = [f for f in recipe.files(folder) if not f.is_file()]
+    if missing:
+        report(
+            f"job {job_id}: recording {len(missing)} of the {recipe.episodes} pretraining episodes into "
+            f"{paths.portable(folder)} ({recipe.command(paths.portable(folder))})"
+        )
+        ensure_demos(recipe, folder, progress=progress)
+
+
 @dataclass(frozen=True)
 class JobRun:
     """One job: its row, plan, request and lease, the runner's store and reporting, and what ``prepare``
@@ -142,6 +166,8 @@ class JobRun:
         parent, info = load_policy(parent_dir)
         recorded = info.get("dataset", {}).get("folder", "")
         pretrain_folder = Path(request.pretrain_data) if request.pretrain_data else paths.resolve(recorded)
+        if not request.pretrain_data:
+            _record_pretraining(info, pretrain_folder, runner.progress, runner.report, job_id)
         return cls(
             id=job_id,
             plan=plan,

@@ -1,6 +1,8 @@
 """The object frame: turning the whole scene about the object changes nothing the network sees, and
 an object-frame policy's world actions and noise field turn with the scene."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -10,6 +12,7 @@ from policy.checkpoint import CheckpointError, load_policy, save_policy
 from policy.config import DiffusionPolicyConfig
 from policy.diffusion_policy import DiffusionPolicy
 from policy.frames import ObjectFrame
+from sim.demos import RECIPE_FILE, DemoRecipe
 from sim.rotations import mat_to_rot6d
 from sim.tasks.lift import LIFT_OBS, LIFT_WORKSPACE
 from storage import keys
@@ -202,6 +205,11 @@ def test_train_command_trains_in_the_object_frame(tmp_path, capsys):
     assert main(["train", "--task", "lift-cube", "--out", str(out), *small]) == 0
     policy, doc = load_policy(out)
     assert policy.config.object_frame == FRAME and doc["policy"]["object_frame"]["object_pos"] == FRAME.object_pos
+    assert doc["dataset"]["recipe"] is None  # these demos were not made by `hitl demos`: no way to re-record
+    # demos that `hitl demos` made say how to record them again, and the policy keeps that recipe
+    (demos / RECIPE_FILE).write_text(json.dumps(DemoRecipe("lift-cube", 4, seed=0).to_dict()))
+    assert main(["train", "--task", "lift-cube", "--out", str(tmp_path / "again"), *small]) == 0
+    assert load_policy(tmp_path / "again")[1]["dataset"]["recipe"] == DemoRecipe("lift-cube", 4).to_dict()
     capsys.readouterr()
     # a task whose observation has no object pose cannot train in its frame: a clear error, nothing written
     bad = tmp_path / "drawer"

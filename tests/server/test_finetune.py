@@ -355,3 +355,47 @@ def test_a_queued_job_whose_process_dies_before_starting_is_marked_failed(store)
     assert job.status == "failed" and "exited with code 2 before starting" in job.error
     log_file = job.error.rsplit("see ", 1)[1]
     assert "unrecognized arguments: --no-such-flag" in Path(log_file).read_text()
+
+
+def test_a_job_on_a_fresh_machine_records_the_parents_pretraining_data_from_its_recipe(store, monkeypatch):
+    """The demo's nightly job on a clone without data/: the parent's config.json names its pretraining
+    folder relative to the data root and the recipe that recorded it; the job records it, then trains."""
+    sessions, data_dir, parent = store
+    root = data_dir.parent / "clone"
+    root.mkdir()
+    monkeypatch.setenv("HITL_DATA_ROOT", str(root))
+    config = Path(parent.path) / "config.json"
+    info = json.loads(config.read_text())
+    info["dataset"] = {
+        "folder": "data/demos/lift-cube-dart",
+        "train_episodes": [f"lift-cube_seed{i:06d}.mcap" for i in range(2)],
+        "val_episodes": ["lift-cube_seed000002.mcap"],
+        "recipe": {"task": TASK, "episodes": 3, "seed": 0, "pos_noise": 0.01, "rot_noise": 0.15},
+    }
+    config.write_text(json.dumps(info))
+    lines = []
+    runner = FinetuneRunner(sessions, data_dir, progress=False, report=lines.append)
+    [summary] = runner.run(JobRequest(policy="lift-cube@active", config=TINY))
+    assert summary["status"] == "succeeded", summary
+    recorded = root / "data" / "demos" / "lift-cube-dart"
+    assert sorted(p.name for p in recorded.glob("*.mcap")) == [f"lift-cube_seed{i:06d}.mcap" for i in range(3)]
+    assert any("recording 3 of the 3 pretraining episodes" in line for line in lines), lines
+    child = registry.resolve(sessions, summary["version"])
+    child_info = read_info(child.path)
+    # the child names the same folder, relative, and the recipe, so that the next night finds it too
+    assert child_info["dataset"]["folder"] == "data/demos/lift-cube-dart"
+    assert child_info["dataset"]["recipe"] == info["dataset"]["recipe"]
+    assert child.manifest["pretraining"]["episodes"] == info["dataset"]["train_episodes"]
+
+
+def test_a_parent_without_data_or_recipe_fails_and_says_how_to_get_the_data(store, monkeypatch):
+    sessions, data_dir, parent = store
+    monkeypatch.setenv("HITL_DATA_ROOT", str(data_dir.parent / "elsewhere"))
+    config = Path(parent.path) / "config.json"
+    info = json.loads(config.read_text())
+    info["dataset"]["folder"] = "data/demos/missing"
+    config.write_text(json.dumps(info))
+    runner = FinetuneRunner(sessions, data_dir, progress=False, report=lambda _: None)
+    [summary] = runner.run(JobRequest(policy="lift-cube@active", config=TINY))
+    assert summary["status"] == "failed" and "holds no recipe" in summary["error"], summary
+    assert "--pretrain-data" in summary["error"]
