@@ -166,8 +166,6 @@ class JobRun:
         parent, info = load_policy(parent_dir)
         recorded = info.get("dataset", {}).get("folder", "")
         pretrain_folder = Path(request.pretrain_data) if request.pretrain_data else paths.resolve(recorded)
-        if not request.pretrain_data:
-            _record_pretraining(info, pretrain_folder, runner.progress, runner.report, job_id)
         return cls(
             id=job_id,
             plan=plan,
@@ -255,7 +253,10 @@ class JobRun:
 
     def train(self, data: JobData) -> Trained:
         """The parent fine-tuned on the new samples mixed with its pretraining split, resumable: a training
-        state is kept in the work folder at each checkpoint, after the lease is checked."""
+        state is kept in the work folder at each checkpoint, after the lease is checked. On a machine
+        without the pretraining data, it is recorded first (once there are samples to train on)."""
+        if not self.request.pretrain_data:
+            _record_pretraining(self.info, self.pretrain_folder, self.progress, self.report, self.id)
         pre_train, _, pre_names = pretraining_split(self.parent, self.info, self.pretrain_folder)
         steps = self.cfg.steps_for(len(data.arrays[keys.OBS]))
         self._update(stage="train")
