@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
-	lift-baselines-hitl-docs resume-docs clean
+	lift-baselines-hitl-docs resume-docs nights-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -189,6 +189,14 @@ resume-docs: install
 		--threads 2 --out docs/results/policy/resume-cup-stack.json --quiet
 	$(BIN)/hitl report resume --policy policies/open-drawer --at 0 10 20 40 80 --budgets 4 16 --episodes 12 \
 		--threads 2 --out docs/results/policy/resume-open-drawer.json --quiet
+
+# docs/benchmarks/nights.md: 3 days of the fleet of configs/nights.toml with the operator bot (10 minutes each) and 2
+# nights of the service's own fine-tuning job between them; the pretraining data is recorded on the first night where
+# data/ lacks it (about 75 min on 2 cores, plus up to 40 min of recording on a fresh clone).
+nights-docs: install
+	rm -rf var/bench-nights
+	$(BIN)/hitl bench nights --config configs/nights.toml --days 3 --day-minutes 10 --data-dir var/bench-nights \
+		--out docs/results/nights/nights.json --figure docs/figures/nights.png --quiet > /dev/null
 
 # docs/benchmarks/service.md, "The loop": the demo fleet served with the operator bot helping, 10 minutes per
 # hand-back mode.

@@ -116,6 +116,7 @@ def _finetune_config(args: argparse.Namespace, settings):
 
     ft = settings.finetune
     given = {"eval_episodes": ft.eval_episodes, "tolerance": ft.tolerance, "min_gain": ft.min_gain}
+    given |= {"eval_seed": ft.eval_seed, "steps": ft.steps}
     given["widen_obs_range"] = ft.widen_obs_range and not args.keep_obs_range
     given["successful_only"] = ft.successful_only if args.successful_only is None else args.successful_only
     given["takeover_tail"] = ft.takeover_tail if args.takeover_tail is None else (args.takeover_tail or None)
@@ -125,6 +126,13 @@ def _finetune_config(args: argparse.Namespace, settings):
         if getattr(args, k) is not None
     }
     return FinetuneConfig(**given)
+
+
+def _lineage_selection(args: argparse.Namespace, settings) -> dict[str, tuple[bool, int | None]]:
+    """``[finetune.selection]``, lineage by lineage, unless the command line chose the takeovers itself."""
+    if args.successful_only is not None or args.takeover_tail is not None:
+        return {}
+    return {name: (c.successful_only, c.takeover_tail) for name, c in settings.finetune.selection.items()}
 
 
 def _command_line(argv: list[str]) -> str:
@@ -177,6 +185,8 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
             trigger=args.trigger,
             command=_command_line(sys.argv[1:]),
             job_id=args.job,
+            lease_ttl=settings.finetune.lease_seconds,
+            selection=_lineage_selection(args, settings),
         )
         runner = FinetuneRunner(
             sessions,

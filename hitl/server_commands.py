@@ -155,14 +155,65 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
 
     if args.seconds <= 0:
         raise ValueError(f"--seconds must be positive, got {args.seconds}")
+    env = _settings_env(args.set)
+    result = run_loop(args.seconds, args.mode, args.config, args.data_dir, env, not args.no_bot, not args.quiet)
+    print(json.dumps(result, indent=None if args.json else 2))
+    return 0
+
+
+def _settings_env(items: list[str] | None) -> dict[str, str]:
+    """``--set KEY=VALUE`` items as ``HITL_KEY`` variables for the service."""
     env = {}
-    for item in args.set or []:
+    for item in items or []:
         key, sep, value = item.partition("=")
         if not sep or not key.isidentifier():
             raise ValueError(f"--set takes KEY=VALUE with a settings key, got {item!r}")
         env["HITL_" + key.upper()] = value
-    result = run_loop(args.seconds, args.mode, args.config, args.data_dir, env, not args.no_bot, not args.quiet)
-    print(json.dumps(result, indent=None if args.json else 2))
+    return env
+
+
+def _cmd_bench_nights(args: argparse.Namespace) -> int:
+    import json
+    import sys
+    import tempfile
+
+    from bench.nights import NIGHTS_CONFIG, NightsPlan, run_nights
+    from bench.nights_figure import plot_nights
+
+    data_dir = args.data_dir or Path(tempfile.mkdtemp(prefix="hitl-nights-"))
+    config, days, minutes, episodes = args.config or NIGHTS_CONFIG, args.days, args.day_minutes, args.day_episodes
+    if args.quick:
+        from bench.nights_quick import quick_config, quick_policy
+
+        if args.config is not None:
+            raise ValueError("--quick makes its own tiny fleet: leave out --config")
+        data_dir.mkdir(parents=True, exist_ok=True)
+        config = quick_config(data_dir, quick_policy(data_dir / "quick"))
+        days = args.days if args.days != 3 else 2
+        minutes = args.day_minutes if args.day_minutes is not None else 3.0
+        episodes = args.day_episodes if args.day_episodes is not None else 2
+    elif minutes is None and episodes is None:
+        minutes = 12.0
+    plan = NightsPlan(
+        config=config,
+        days=days,
+        day_minutes=minutes,
+        day_episodes=episodes,
+        night_timeout_s=args.night_timeout * 60,
+        data_dir=data_dir / "service" if args.quick else data_dir,
+        env=_settings_env(args.set),
+        progress=not args.quiet,
+    )
+    result = run_nights(plan)
+    result["quick"] = bool(args.quick)
+    result["command"] = "hitl " + " ".join(sys.argv[1:])
+    text = json.dumps(result, indent=None if args.json else 2)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+    if args.figure:
+        plot_nights(result, Path(args.figure))
+    print(text)
     return 0
 
 
@@ -244,6 +295,23 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_loop)
+
+    q = bench.add_parser(
+        "nights", help="days of the fleet with an operator, nights of fine-tuning by the service's scheduler"
+    )
+    q.add_argument("--config", type=Path, default=None, help="service config (default: configs/nights.toml)")
+    q.add_argument("--days", type=int, default=3, help="days, with a night between each two (at least 2)")
+    q.add_argument("--day-minutes", type=float, default=None, help="a day's length (default 12 without --day-episodes)")
+    q.add_argument("--day-episodes", type=int, default=None, help="or: a day ends once each task finished this many")
+    q.add_argument("--night-timeout", type=float, default=60.0, help="minutes a night's job may take at most")
+    q.add_argument("--data-dir", type=Path, default=None, help="the run's service folder (default: a temp dir)")
+    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown_steps=20")
+    q.add_argument("--quick", action="store_true", help="a tiny fleet and job, for CI (2 days, minutes)")
+    q.add_argument("--out", type=Path, default=None, help="also write the JSON report here")
+    q.add_argument("--figure", type=Path, default=None, help="write the effort-and-success figure here (PNG)")
+    q.add_argument("--json", action="store_true")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_nights)
 
     p = sub.add_parser("token", help="create or revoke API tokens")
     p.add_argument("action", choices=["create", "revoke"])

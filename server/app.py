@@ -36,7 +36,7 @@ from server.db import make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.fleet import Fleet
 from server.recording import recover
-from server.scheduler import JobLauncher, Scheduler
+from server.scheduler import FileClock, JobLauncher, Scheduler, local_now
 from server.settings import Settings
 
 log = logging.getLogger("hitl.server")
@@ -216,8 +216,12 @@ def create_app(settings: Settings, extensions: Sequence[ServiceExtension] = ()) 
         app.state.launcher = JobLauncher(settings.data_dir, url, settings.finetune)
         app.state.scheduler = None
         if settings.finetune.schedule:
+            clock_file = settings.finetune.clock_file  # a benchmark's night, else the system clock
             app.state.scheduler = Scheduler(
-                settings.finetune.schedule, lambda due: app.state.launcher.launch("schedule")
+                settings.finetune.schedule,
+                lambda due: app.state.launcher.launch("schedule"),
+                clock=FileClock(clock_file) if clock_file is not None else local_now,
+                poll=1.0 if clock_file is not None else 30.0,
             )
             app.state.scheduler.start()
         announcer = asyncio.create_task(announce_ready(app))

@@ -108,16 +108,15 @@ class FinetuneRunner:
     def _job_row(self, plan: Plan, request: JobRequest) -> tuple[int, bool]:
         """(job id, resumed): an unfinished job of the lineage on the same parent and data is resumed; other
         unfinished ones (their holder is gone: we hold the lease) are marked interrupted."""
+        config = request.config_for(plan.lineage)
         key = {
             "segment_ids": plan.segment_ids,
             # the selection's choice too: a takeover whose episode has ended since must not resume old training
-            "selected_segment_ids": [
-                s.id for s in select_segments(self.sessions, plan.segments, request.config.selection)[0]
-            ],
+            "selected_segment_ids": [s.id for s in select_segments(self.sessions, plan.segments, config.selection)[0]],
             "source": request.source,
             "episodes": str(plan.episodes or ""),
             "pretrain_data": str(request.pretrain_data or ""),
-            "train_config": {k: v for k, v in request.config.to_dict().items() if not k.startswith("eval")},
+            "train_config": {k: v for k, v in config.to_dict().items() if not k.startswith("eval")},
         }
         with self.sessions() as s:
             stale = list(

@@ -9,7 +9,7 @@ answer 422) before it queues a job; ``server.finetune_job`` runs the plans.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -45,7 +45,8 @@ class JobRequest:
     since: only segments that ended this recently; source: ``takeovers`` or ``full-episodes`` (then
     ``episodes``: a folder of episode MCAPs); eval_tasks: the gate's target tasks (default: the tasks the
     takeovers came from); promote: promote a version that passes the gate; job_id: a queued job row to
-    run (the API's trigger)."""
+    run (the API's trigger); selection: lineage -> (successful_only, takeover_tail), which takeovers that
+    lineage learns from in place of ``config``'s (``[finetune.selection]``; ``config_for``)."""
 
     policy: str | None = None
     since: timedelta | None = None
@@ -59,6 +60,14 @@ class JobRequest:
     command: str | None = None
     job_id: int | None = None
     lease_ttl: float = 60.0
+    selection: dict[str, tuple[bool, int | None]] = field(default_factory=dict)
+
+    def config_for(self, lineage: str) -> FinetuneConfig:
+        """The training settings of one lineage's job: ``config``, with the lineage's own selection."""
+        if lineage not in self.selection:
+            return self.config
+        successful_only, tail = self.selection[lineage]
+        return replace(self.config, successful_only=successful_only, takeover_tail=tail)
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
@@ -112,7 +121,7 @@ def plan_jobs(sessions: sessionmaker, request: JobRequest) -> list[Plan]:
         }
         # news: what the selection would learn from (a takeover it leaves out starts no job; one whose
         # episode is still running is news once its episode has ended, if it succeeded)
-        kept = {s.id for s in select_segments(sessions, segments, request.config.selection)[0]}
+        kept = {s.id for s in select_segments(sessions, segments, request.config_for(name).selection)[0]}
         if any(s.id not in used and s.id in kept for s in segments):
             plans.append(Plan(name, active, segments))
     return plans

@@ -148,7 +148,7 @@ class JobRun:
 
     @property
     def cfg(self) -> FinetuneConfig:
-        return self.request.config
+        return self.request.config_for(self.plan.lineage)
 
     def _update(self, **values) -> None:
         update_job(self.sessions, self.id, **values)
@@ -162,7 +162,7 @@ class JobRun:
         the data root, ``storage.paths``)."""
         work = runner.data_dir / "finetune" / f"job-{job_id}"
         work.mkdir(parents=True, exist_ok=True)
-        parent_dir = Path(plan.parent.path)
+        parent_dir = registry.folder(plan.parent)
         parent, info = load_policy(parent_dir)
         recorded = info.get("dataset", {}).get("folder", "")
         pretrain_folder = Path(request.pretrain_data) if request.pretrain_data else paths.resolve(recorded)
@@ -450,7 +450,7 @@ class JobRun:
         while True:
             final = self.data_dir / "policies" / lineage / f"v{n}"
             with self.sessions() as s:
-                taken = s.scalars(select(PolicyVersion.id).where(PolicyVersion.path == str(final.resolve()))).first()
+                taken = registry.by_path(s, final)
             if taken is None:
                 break
             n += 1  # a folder of that name is registered (another lineage layout): never overwritten

@@ -21,7 +21,6 @@ import threading
 import time
 from pathlib import Path
 
-from sqlalchemy import select
 from sqlalchemy.orm import sessionmaker
 
 from policy.checkpoint import CheckpointError, read_info
@@ -59,7 +58,7 @@ class PolicySwap:
         no active version gets the configured folder as its active one."""
         key = str(Path(path).resolve())
         with self.sessions() as s:
-            row = s.scalars(select(PolicyVersion).where(PolicyVersion.path == key)).one_or_none()
+            row = registry.by_path(s, key)
         if row is None:
             info = _policy_info(Path(key))
             row = registry.register(
@@ -82,7 +81,7 @@ class PolicySwap:
             active = row
         if active.id not in self.slots:
             try:
-                slot = load_slot(self.settings, Path(active.path), task, active.id, active.name)
+                slot = load_slot(self.settings, registry.folder(active), task, active.id, active.name)
             except ServiceError as exc:
                 if active.id == row.id:
                     raise
@@ -91,7 +90,7 @@ class PolicySwap:
                 )
                 self._unloadable[active.id] = exc.message
                 active = row
-                slot = self.slots.get(row.id) or load_slot(self.settings, Path(row.path), task, row.id, row.name)
+                slot = self.slots.get(row.id) or load_slot(self.settings, registry.folder(row), task, row.id, row.name)
             self.slots[active.id] = slot
             self.assigned[active.name] = slot
             with self.sessions() as s:
@@ -184,14 +183,14 @@ class PolicySwap:
         cannot drive every robot of its lineage (another observation size)."""
         with self.lock:
             tasks = {r.task for r in self.robots.values() if r.slot.lineage == row.name}
-        wanted = (_policy_info(Path(row.path)).get("policy") or {}).get("obs_dim") if tasks else None
+        wanted = (_policy_info(registry.folder(row)).get("policy") or {}).get("obs_dim") if tasks else None
         for task in sorted(tasks):
             dim = _task_spec(task).obs_spec.dim
             if wanted != dim:
                 raise ServiceError(
                     422, f"policy {row.ref} expects {wanted}-dim observations, its lineage's {task} robots give {dim}"
                 )
-        slot = self.slots.get(row.id) or load_slot(self.settings, Path(row.path), row.task, row.id, row.name)
+        slot = self.slots.get(row.id) or load_slot(self.settings, registry.folder(row), row.task, row.id, row.name)
         with self.sessions() as s:
             s.get(PolicyVersion, row.id).threshold = slot.threshold
             s.commit()

@@ -22,9 +22,12 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from policy.checkpoint import CheckpointError, read_info
+from server import effort
 from server.db import FinetuneJob, PolicyVersion
+from server.effort import Effort
 from server.errors import ServiceError
 from server.lease import Lease, renew_in
+from storage import paths
 
 _REF = re.compile(r"^(?P<name>[A-Za-z0-9][A-Za-z0-9._-]{0,255})(?:@(?P<sel>active|[1-9][0-9]{0,8}))?$")
 
@@ -109,12 +112,30 @@ def active_versions(sessions: sessionmaker) -> dict[str, PolicyVersion]:
         return {r.name: r for r in s.scalars(select(PolicyVersion).where(PolicyVersion.status == "active"))}
 
 
+def folder(row: PolicyVersion) -> Path:
+    """A version's folder as this process opens it: the registry records it relative to the data root
+    (``storage.paths``) when it lies under it, so a database names no machine's folders."""
+    return paths.resolve(row.path)
+
+
+def path_keys(path: str | Path) -> list[str]:
+    """How the registry may record a folder: relative to the data root (new rows), or absolute (rows
+    registered before paths were recorded relative)."""
+    absolute = str(Path(path).resolve())
+    return list(dict.fromkeys([paths.portable(absolute), absolute]))
+
+
+def by_path(s: Session, path: str | Path) -> PolicyVersion | None:
+    """The version registered for a folder, if any."""
+    return s.scalars(select(PolicyVersion).where(PolicyVersion.path.in_(path_keys(path)))).first()
+
+
 def _check_files(row: PolicyVersion) -> None:
     try:
-        read_info(row.path)
+        read_info(folder(row))
     except CheckpointError as exc:
         raise ServiceError(422, f"policy {row.ref}: {exc}") from exc
-    if not (Path(row.path) / "model.safetensors").is_file():
+    if not (folder(row) / "model.safetensors").is_file():
         raise ServiceError(422, f"policy {row.ref}: {row.path}/model.safetensors not found")
 
 
@@ -133,17 +154,17 @@ def register(
 
     lease: a fenced write (the fine-tuning job's): the version is written in the same transaction that
     renews the lease, or not at all (LeaseLost)."""
-    key = str(Path(path).resolve())
+    key = path_keys(path)[0]
     with sessions() as s:
         if lease is not None:
             renew_in(s, lease)
         parent_row = s.get(PolicyVersion, parent) if parent is not None else None
         if parent is not None and parent_row is None:
             raise ServiceError(404, f"no policy version {parent}")
-        row = s.scalars(select(PolicyVersion).where(PolicyVersion.path == key)).one_or_none()
+        row = by_path(s, path)
         if row is not None:
             return row
-        lineage = name or (parent_row.name if parent_row is not None else Path(key).name)
+        lineage = name or (parent_row.name if parent_row is not None else Path(path).resolve().name)
         if PolicyRef.parse(lineage) != PolicyRef(lineage):  # e.g. a folder named "x@3"
             raise ServiceError(422, f"{lineage!r} cannot name a policy: NAME@VERSION could not address it")
         last = s.scalar(select(func.max(PolicyVersion.version)).where(PolicyVersion.name == lineage)) or 0
@@ -235,11 +256,27 @@ class LineageSummary:
     job_promoted: bool | None = None
     job_error: str | None = None
     job_ended: str | None = None  # ISO time
+    history: tuple[VersionHistory, ...] = ()  # every version, oldest first
+    days: tuple[tuple[str, Effort], ...] = ()  # (ISO date, the lineage's effort that day), the last 7 days
+
+
+@dataclass(frozen=True)
+class VersionHistory:
+    """One version of a lineage as the console's lineage view lists it: why it has its status (the
+    gate's decision for a fine-tuned one) and the effort of the episodes it served."""
+
+    ref: str
+    status: str
+    reason: str | None
+    created: str  # ISO time
+    effort: Effort
 
 
 def lineage_summaries(sessions: sessionmaker) -> list[LineageSummary]:
     rows = versions(sessions)
     jobs = last_jobs(sessions)
+    with sessions() as s:
+        per_version, per_day = effort.by_version(s), effort.by_day(s)
     by_id = {r.id: r for r in rows}
     out = []
     for name in sorted({r.name for r in rows}):
@@ -264,6 +301,25 @@ def lineage_summaries(sessions: sessionmaker) -> list[LineageSummary]:
                 job_promoted=gate.get("promoted"),
                 job_error=job.error if job else None,
                 job_ended=job.ended_at.isoformat(timespec="minutes") if job and job.ended_at else None,
+                history=tuple(
+                    VersionHistory(
+                        r.ref,
+                        r.status,
+                        r.status_reason,
+                        r.created_at.isoformat(timespec="minutes"),
+                        per_version.get(r.id, Effort()),
+                    )
+                    for r in sorted(mine, key=lambda r: r.version)
+                ),
+                days=_lineage_days({r.id for r in mine}, per_day),
             )
         )
     return out
+
+
+def _lineage_days(ids: set[int], per_day: dict[tuple[int, str], Effort]) -> tuple[tuple[str, Effort], ...]:
+    days: dict[str, Effort] = {}
+    for (version_id, day), e in per_day.items():
+        if version_id in ids:
+            days[day] = days.get(day, Effort()) + e
+    return tuple(sorted(days.items()))

@@ -36,6 +36,48 @@ def local_now() -> datetime:
     return datetime.now().astimezone()
 
 
+class FileClock:
+    """A clock read from a file holding one ISO 8601 time (``[finetune] clock_file``): a benchmark
+    (``hitl bench nights``) or a test moves the night forward by writing the file, and the service's own
+    scheduler fires, as it would at that hour. A time without a zone is local time. Unreadable at the
+    start: ValueError; unreadable later (mid-write): the last time read, with a warning."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.last = self._read()
+
+    def _read(self) -> datetime:
+        try:
+            text = self.path.read_text().strip()
+        except OSError as exc:
+            raise ValueError(f"clock file {self.path}: cannot be read ({exc.strerror})") from None
+        try:
+            when = datetime.fromisoformat(text)
+        except ValueError:
+            raise ValueError(f"clock file {self.path}: {text[:40]!r} is not an ISO 8601 time") from None
+        return when if when.tzinfo is not None else when.astimezone()
+
+    def __call__(self) -> datetime:
+        try:
+            self.last = self._read()
+        except ValueError as exc:
+            log.warning("%s; keeping %s", exc, self.last.isoformat())
+        return self.last
+
+
+def write_clock(path: str | Path, when: datetime) -> None:
+    """Sets a ``FileClock``'s time, atomically (the scheduler never reads half a line)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(when.isoformat() + "\n")
+    os.replace(tmp, path)
+
+
+def next_due(expr: str, now: datetime) -> datetime:
+    """The first time after ``now`` that the cron expression names."""
+    return croniter(parse_cron(expr), now).get_next(datetime)
+
+
 class Scheduler:
     """Calls ``fire(due_time)`` at each time the cron expression names; ``tick(now)`` is the whole logic
     (tests drive it with their own clock)."""
@@ -54,7 +96,7 @@ class Scheduler:
         self._thread: threading.Thread | None = None
 
     def _after(self, when: datetime) -> datetime:
-        return croniter(self.expr, when).get_next(datetime)
+        return next_due(self.expr, when)
 
     def tick(self, now: datetime | None = None) -> bool:
         """Fires if the next due time has come; True if it fired."""
@@ -96,6 +138,9 @@ class JobLauncher:
         self.data_dir, self.database_url = Path(data_dir).resolve(), database_url
         self.settings = settings  # server.settings.FinetuneSettings
         self.process: subprocess.Popen | None = None
+        self.launches = 0  # processes started from here
+        self.last_exit_code: int | None = None  # of the last one that ended
+        self.last_log: Path | None = None
         self._lock = threading.Lock()
 
     def running(self) -> bool:
@@ -139,9 +184,17 @@ class JobLauncher:
             finally:
                 out.close()
             log.info("fine-tuning job started (%s), pid %d, log %s", trigger, self.process.pid, out.name)
-            if on_exit is not None:
-                proc, path = self.process, Path(out.name)
-                threading.Thread(target=lambda: on_exit(proc.wait(), path), name="finetune-exit", daemon=True).start()
+            self.launches += 1
+            self.last_log, self.last_exit_code = Path(out.name), None
+            proc, path = self.process, Path(out.name)
+
+            def ended() -> None:
+                code = proc.wait()
+                self.last_exit_code = code
+                if on_exit is not None:
+                    on_exit(code, path)
+
+            threading.Thread(target=ended, name="finetune-exit", daemon=True).start()
             return self.process
 
     def stop(self, timeout: float = 30.0) -> None:

@@ -42,6 +42,18 @@ class RobotGroup(BaseModel):
         return v
 
 
+class TakeoverChoice(BaseModel):
+    """Which takeovers one lineage's job learns from (``[finetune.selection.<lineage>]``); it wins over
+    the service-wide ``successful_only`` and ``takeover_tail``."""
+
+    model_config = {"extra": "forbid"}
+
+    successful_only: bool = Field(False, description="learn only from takeovers in episodes that ended in success")
+    takeover_tail: int | None = Field(
+        None, ge=1, description="learn from the last N steps of each takeover, those that led to the hand-back"
+    )
+
+
 class FinetuneSettings(BaseModel):
     """The fine-tuning job inside ``hitl serve`` (``[finetune]`` in the TOML file)."""
 
@@ -66,9 +78,30 @@ class FinetuneSettings(BaseModel):
     takeover_tail: int | None = Field(
         None, ge=1, description="learn from the last N steps of each takeover, those that led to the hand-back"
     )
+    selection: dict[str, TakeoverChoice] = Field(
+        default_factory=dict,
+        description="lineage -> which takeovers its job learns from (default: successful_only and takeover_tail)",
+    )
     eval_tasks: dict[str, list[str]] = Field(
         default_factory=dict,
         description="lineage -> the target tasks the gate compares on (default: the tasks its takeovers came from)",
+    )
+    eval_seed: int = Field(
+        50_000,
+        ge=0,
+        description="first seed of the gate's evaluation episodes: seeds the fleet never runs (robot r runs "
+        "seed + 1000 r + k), so the gate is never judged on an episode it trained on",
+    )
+    steps: int | None = Field(
+        None, ge=1, description="fixed training steps (default: grown with the takeover data, FinetuneConfig.steps_for)"
+    )
+    lease_seconds: float = Field(
+        60.0, gt=0, le=3600, description="the job's lease: a job killed outright frees it after this long"
+    )
+    clock_file: Path | None = Field(
+        None,
+        description="benchmarks and tests only: the schedule reads the time from this file (ISO 8601) instead "
+        "of the system clock, so a benchmark moves the night forward (`hitl bench nights`)",
     )
     threads: int = Field(1, ge=1, le=256, description="torch threads of the job")
 
@@ -81,6 +114,15 @@ class FinetuneSettings(BaseModel):
 
         parse_cron(v)
         return v.strip()
+
+    @field_validator("clock_file")
+    @classmethod
+    def _clock(cls, v: Path | None) -> Path | None:
+        if v is not None:
+            from server.scheduler import FileClock
+
+            FileClock(v)  # readable, and holds a time
+        return v
 
     @field_validator("eval_tasks")
     @classmethod

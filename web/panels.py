@@ -112,7 +112,44 @@ def lineage_markdown(lineages: tuple[LineageSummary, ...]) -> str:
         lines.append(
             f"| {ln.name} | {ln.active or '–'}{extra} | {ln.parent or '–'} · {ln.reason or ''} | {job[:160]} |"
         )
+    for ln in lineages:
+        lines += ["", *lineage_history_markdown(ln)]
     return "\n".join(lines)
+
+
+def _rate(x: float | None, fmt: str = "{:.0%}") -> str:
+    return "–" if x is None else fmt.format(x)
+
+
+def lineage_history_markdown(ln: LineageSummary) -> list[str]:
+    """A lineage's versions (status, why: the gate's decision, the help their episodes took) and its
+    effort per day: whether the fleet needs less help after each night."""
+    lines = [
+        f"**{ln.name}: versions**",
+        "",
+        "| Version | Status | Why | Episodes | Alone | Steps helped / ep. | Requests / ep. |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for v in ln.history:
+        e = v.effort
+        lines.append(
+            f"| {v.ref} | {v.status} | {(v.reason or '–')[:120]} | {e.episodes} | {_rate(e.autonomous_rate)} | "
+            f"{_rate(e.assisted_steps_per_episode, '{:.1f}')} | {_rate(e.requests_per_episode, '{:.1f}')} |"
+        )
+    if ln.days:
+        lines += [
+            "",
+            f"**{ln.name}: help per day** (UTC)",
+            "",
+            "| Day | Episodes | Alone | Steps helped / ep. | Requests / ep. |",
+            "|---|---|---|---|---|",
+        ]
+        for day, e in ln.days:
+            lines.append(
+                f"| {day} | {e.episodes} | {_rate(e.autonomous_rate)} | {_rate(e.assisted_steps_per_episode, '{:.1f}')}"
+                f" | {_rate(e.requests_per_episode, '{:.1f}')} |"
+            )
+    return lines
 
 
 def queue_row(req: AssistanceRequest, view: RobotView | None, now: float, me: str) -> str:

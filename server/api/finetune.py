@@ -10,7 +10,7 @@ from sqlalchemy import select
 
 from server.api.deps import Admin, SessionsDep, Viewer
 from server.api.responses import AUTH, BODY, errors
-from server.api.schemas import FinetuneJobIn, FinetuneJobOut, Id, PolicyName
+from server.api.schemas import FinetuneJobIn, FinetuneJobOut, FinetuneScheduleOut, Id, PolicyName
 from server.db import FinetuneJob
 from server.errors import ServiceError
 from server.finetune_job import FinetuneRunner, JobRequest, parse_since
@@ -42,6 +42,20 @@ def jobs(
         q = q.where(FinetuneJob.status == status)
     with sessions() as s:
         return list(s.scalars(q))
+
+
+@router.get("/finetune-schedule", response_model=FinetuneScheduleOut, responses=errors(AUTH))
+def schedule(request: Request, launcher: LauncherDep, _: Viewer) -> FinetuneScheduleOut:
+    """When the nightly job runs next, and whether one started by this service is running."""
+    scheduler = request.app.state.scheduler
+    return FinetuneScheduleOut(
+        schedule=scheduler.expr if scheduler is not None else None,
+        next_run=scheduler.next_due if scheduler is not None else None,
+        clock="file" if launcher.settings.clock_file is not None else "system",
+        running=launcher.running(),
+        launches=launcher.launches,
+        last_exit_code=launcher.last_exit_code,
+    )
 
 
 @router.get("/finetune-jobs/{job_id}", response_model=FinetuneJobOut, responses=errors(AUTH, 404, 422))

@@ -270,6 +270,17 @@ class FinetuneJobIn(BaseModel):
     )
 
 
+class FinetuneScheduleOut(BaseModel):
+    """The nightly job's schedule in this service, and the job processes it started."""
+
+    schedule: str | None = Field(description="the cron expression; null: never scheduled")
+    next_run: datetime | None = Field(description="when the schedule next starts a job (the service's clock)")
+    clock: Literal["system", "file"] = Field(description="file: a benchmark's clock (`[finetune] clock_file`)")
+    running: bool = Field(description="a job process started by this service is running")
+    launches: int = Field(description="job processes started by this service (schedule and API)")
+    last_exit_code: int | None = Field(description="exit code of the last one that ended (0: every job succeeded)")
+
+
 class FinetuneJobOut(BaseModel):
     model_config = ConfigDict(from_attributes=True)
     id: int

@@ -180,3 +180,32 @@ def test_one_active_version_per_lineage_is_enforced_by_the_database(tmp_path):
     assert err.value.status == 422 and "NAME@VERSION could not address it" in err.value.message
     assert [r.ref for r in registry.versions(fleet.sessions)] == ["policy@1", "policy@2"]
     fleet.stop()
+
+
+def test_the_registry_records_folders_relative_to_the_data_root(tmp_path, monkeypatch):
+    """A version's folder under the data root is recorded relative to it (a database names no machine's
+    folders) and opens from there; a row recorded absolute (before) is still found by its folder."""
+    from server.db import make_engine, migrate, session_factory
+
+    url = f"sqlite:///{tmp_path / 'hitl.db'}"
+    migrate(url)
+    sessions = session_factory(make_engine(url))
+    monkeypatch.setenv("HITL_DATA_ROOT", str(tmp_path))
+    folder = tiny_policy_folder(tmp_path / "var" / "policies" / "lift-cube" / "v1", "lift-cube", 1e9)
+    row = registry.register(sessions, folder, "lift-cube", name="lift-cube")
+    assert row.path == "var/policies/lift-cube/v1"
+    assert registry.folder(row) == folder and registry.register(sessions, folder, "lift-cube").id == row.id
+    outside = tiny_policy_folder(tmp_path.parent / f"{tmp_path.name}-elsewhere" / "p", "lift-cube", 1e9)
+    other = registry.register(sessions, outside, "lift-cube", name="other")
+    assert other.path == str(outside.resolve())  # outside the data root: absolute, the only way to name it
+    with sessions() as s:  # a row written before paths were recorded relative
+        s.get(PolicyVersion, row.id).path = str(folder.resolve())
+        s.commit()
+    assert registry.register(sessions, folder, "lift-cube").id == row.id
+    monkeypatch.setenv("HITL_DATA_ROOT", str(tmp_path / "moved"))  # the data root moved: relative rows follow it
+    with sessions() as s:
+        s.get(PolicyVersion, row.id).path = "var/policies/lift-cube/v1"
+        s.commit()
+    assert (
+        registry.folder(registry.resolve(sessions, "lift-cube@1")) == tmp_path / "moved" / "var/policies/lift-cube/v1"
+    )

@@ -51,7 +51,7 @@ def served(tmp_path_factory):
     config = root / "fleet.toml"
     config.write_text(CONFIG.format(data=root / "var"))
     tokens = {}
-    for role in ("operator", "viewer"):
+    for role in ("operator", "viewer", "admin"):
         out = subprocess.run(
             [*HITL, "token", "create", "--config", str(config), "--role", role, "--name", f"{role}-browser"],
             check=True,

@@ -49,6 +49,8 @@ def test_claim_jog_gripper_and_hand_back_from_the_console(served, browser):
 
 
 def test_a_viewer_watches_read_only(served, browser):
+    # a new episode, whose first state asks at once (after a hand-back the robot may not ask again soon)
+    served.api("/robots/0/reset", role="admin", method="POST")
     wait_for(lambda: _request(served) is not None and _request(served)["holder"] is None, timeout=120)
     page = log_in(browser, served, "viewer")
     page.get_by_role("tab", name="Fleet").click()

@@ -1,0 +1,112 @@
+"""``hitl bench nights`` on a tiny fleet: a real ``hitl serve``, its own scheduler on a controlled clock,
+the nightly job as the service starts it, a crash of that job, and the report."""
+
+import os
+import signal
+import time
+from datetime import UTC, datetime
+
+import pytest
+from sqlalchemy import select
+
+from bench.nights import NightsPlan, Service, _day, _morning, _night, nights_report, run_nights
+from bench.nights_quick import quick_config, quick_policy
+from server import lease as leases
+from server import registry
+from server.db import FinetuneJob, PolicyVersion, SegmentRecord
+from server.scheduler import next_due
+from tests.helpers import wait_for
+
+
+@pytest.fixture(scope="module")
+def quick_fleet(tmp_path_factory):
+    root = tmp_path_factory.mktemp("nights")
+    return root, quick_policy(root / "quick")
+
+
+def test_plan_is_validated():
+    with pytest.raises(ValueError, match="days"):
+        NightsPlan(days=1)
+    with pytest.raises(ValueError, match="needs an end"):
+        NightsPlan(day_minutes=None, day_episodes=None)
+    with pytest.raises(ValueError, match="day-episodes"):
+        NightsPlan(day_episodes=0)
+
+
+def test_a_folder_with_a_service_database_is_refused(tmp_path):
+    (tmp_path / "hitl.db").write_bytes(b"")
+    with pytest.raises(ValueError, match="already holds a service database"):
+        run_nights(NightsPlan(data_dir=tmp_path))
+
+
+def test_days_and_nights_through_the_service_with_a_crash_mid_night(quick_fleet):
+    """Day 1: the robots ask, the operator bot drives, the service records takeovers. Night 1: the
+    benchmark moves the service's clock, the service's scheduler starts the job, the job is killed
+    with SIGKILL in training: the registry is unchanged. Night 2: the scheduler starts the job again,
+    which resumes the killed one under the lease, trains on the segments the service recorded, and
+    its gate refuses the candidate (the tiny policy succeeds nowhere): the fleet stays on its version
+    and the report says why. Day 2 runs on that version and the report counts it."""
+    root, policy = quick_fleet
+    config = quick_config(root, policy)
+    plan = NightsPlan(config=config, days=2, day_minutes=3.0, day_episodes=1, data_dir=root / "service", progress=False)
+    service = Service(plan, plan.data_dir)
+    sessions = service.sessions
+    days, nights = [], []
+    try:
+        service.wait_ready()
+        days.append(_day(service, plan, 1))
+        with sessions() as s:
+            recorded = {seg.id for seg in s.scalars(select(SegmentRecord).where(SegmentRecord.status == "closed"))}
+            versions_before = [(v.id, v.status) for v in s.scalars(select(PolicyVersion))]
+        assert recorded, "day 1 recorded no takeover"
+
+        # night 1: the scheduler fires on the moved clock; the job is killed while it trains
+        night_start = datetime.now(UTC)
+        due = next_due(service.schedule, service.clock)
+        service.set_clock(due)
+
+        def training():
+            with sessions() as s:
+                job = s.scalars(select(FinetuneJob).where(FinetuneJob.created_at >= night_start)).first()
+            return job if job is not None and job.stage == "train" else None
+
+        job = wait_for(training, timeout=180)
+        owner, _ = leases.holder(sessions, leases.FINETUNE_LEASE)
+        assert owner is not None and job.trigger == "schedule"
+        os.kill(int(owner.split(":")[1]), signal.SIGKILL)
+        wait_for(lambda: service.schedule_state()["last_exit_code"] == -signal.SIGKILL, timeout=30)
+        with sessions() as s:
+            assert [(v.id, v.status) for v in s.scalars(select(PolicyVersion))] == versions_before
+            assert s.get(FinetuneJob, job.id).status == "running"  # its holder is gone, its row says so later
+        time.sleep(6)  # the killed job's lease (5 s in the quick settings) lapses
+
+        # night 2: the scheduler fires again; the job resumes the killed one and its gate decides
+        nights.append(_night(service, plan, 2))
+        [ran] = [j for j in nights[0]["jobs"] if j["status"] != "interrupted"] or [None]
+        assert nights[0]["exit_code"] == 0, nights
+        assert ran is not None and ran["job"] == job.id and ran["resumes"] == 1, nights
+        assert ran["status"] == "succeeded" and ran["trigger"] == "schedule"
+        assert ran["data"]["segments"] >= 1 and ran["data"]["samples"] >= 1
+        with sessions() as s:
+            used = set(s.get(FinetuneJob, job.id).data["segment_ids"])
+        assert used and used <= recorded  # the takeovers the service recorded on day 1
+        assert ran["promoted"] is False and ran["gate"]["reason"].startswith("not better on lift-hammer")
+        assert ran["gate"]["evidence"]["target_tasks"] == ["lift-hammer"]
+        assert ran["version"] == "policy@2" and ran["parent"] == "policy@1"
+        assert registry.resolve(sessions, "policy@active").ref == "policy@1"
+
+        _morning(service, due.replace(hour=8))
+        days.append(_day(service, plan, 2))
+    finally:
+        service.stop()
+    report = nights_report(sessions, service.settings, plan, days, nights)
+    day1, day2 = report["days"]
+    for day in (day1, day2):
+        for task in ("lift-cube", "lift-hammer"):
+            t = day["per_task"][task]
+            assert t["episodes"] >= 1 and t["requests_per_episode"] > 0, day
+            assert t["assisted_steps_per_episode"] > 0 and t["operator_seconds_per_episode"] > 0
+            assert t["versions"] == {"policy@1": t["episodes"]}  # the refused candidate never served
+    assert report["nights"][0]["jobs"][0]["gate"]["promote"] is False
+    assert report["goals"]["day2"]["assisted_steps_ratio"] is not None
+    assert day2["clock"].startswith(due.date().isoformat())
