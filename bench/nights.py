@@ -246,6 +246,13 @@ def _night(service: Service, plan: NightsPlan, night: int) -> dict:
     }
 
 
+def _portable_text(text: str | None) -> str | None:
+    """A message with the data root's folder left out of its paths (a report names no machine's folders)."""
+    from storage.paths import data_root
+
+    return None if text is None else text.replace(str(data_root()) + "/", "")
+
+
 def _night_progress(sessions, since: datetime) -> str:
     with sessions() as s:
         rows = s.scalars(select(FinetuneJob).where(FinetuneJob.created_at >= since).order_by(FinetuneJob.id)).all()
@@ -296,7 +303,7 @@ def _jobs(sessions, since: datetime) -> list[dict]:
                 "status": j.status,
                 "trigger": j.trigger,
                 "resumes": data.get("resumes", 0),
-                "error": j.error,
+                "error": _portable_text(j.error),
                 "parent": refs.get(j.parent_id),
                 "version": refs.get(j.version_id),
                 "promoted": (j.gate or {}).get("promoted", False),

@@ -110,3 +110,11 @@ def test_days_and_nights_through_the_service_with_a_crash_mid_night(quick_fleet)
     assert report["nights"][0]["jobs"][0]["gate"]["promote"] is False
     assert report["goals"]["day2"]["assisted_steps_ratio"] is not None
     assert day2["clock"].startswith(due.date().isoformat())
+
+
+def test_job_errors_name_paths_relative_to_the_data_root(tmp_path, monkeypatch):
+    from bench.nights import _portable_text
+
+    monkeypatch.setenv("HITL_DATA_ROOT", str(tmp_path))
+    assert _portable_text(f"not in {tmp_path}/data/demos/x (e.g. a.mcap)") == "not in data/demos/x (e.g. a.mcap)"
+    assert _portable_text(None) is None
