@@ -189,11 +189,13 @@ def _cmd_bench_nights(args: argparse.Namespace) -> int:
             raise ValueError("--quick makes its own tiny fleet: leave out --config")
         data_dir.mkdir(parents=True, exist_ok=True)
         config = quick_config(data_dir, quick_policy(data_dir / "quick"))
-        days = args.days if args.days != 3 else 2
+        days = args.days if args.days is not None else 2
         minutes = args.day_minutes if args.day_minutes is not None else 3.0
         episodes = args.day_episodes if args.day_episodes is not None else 2
-    elif minutes is None and episodes is None:
-        minutes = 12.0
+    else:
+        days = args.days if args.days is not None else 3
+        if minutes is None and episodes is None:
+            minutes = 12.0
     plan = NightsPlan(
         config=config,
         days=days,
@@ -300,7 +302,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         "nights", help="days of the fleet with an operator, nights of fine-tuning by the service's scheduler"
     )
     q.add_argument("--config", type=Path, default=None, help="service config (default: configs/nights.toml)")
-    q.add_argument("--days", type=int, default=3, help="days, with a night between each two (at least 2)")
+    q.add_argument("--days", type=int, default=None, help="days, with a night between each two (default 3; --quick 2)")
     q.add_argument("--day-minutes", type=float, default=None, help="a day's length (default 12 without --day-episodes)")
     q.add_argument("--day-episodes", type=int, default=None, help="or: a day ends once each task finished this many")
     q.add_argument("--night-timeout", type=float, default=60.0, help="minutes a night's job may take at most")

@@ -140,7 +140,6 @@ class JobLauncher:
         self.process: subprocess.Popen | None = None
         self.launches = 0  # processes started from here
         self.last_exit_code: int | None = None  # of the last one that ended
-        self.last_log: Path | None = None
         self._lock = threading.Lock()
 
     def running(self) -> bool:
@@ -185,7 +184,7 @@ class JobLauncher:
                 out.close()
             log.info("fine-tuning job started (%s), pid %d, log %s", trigger, self.process.pid, out.name)
             self.launches += 1
-            self.last_log, self.last_exit_code = Path(out.name), None
+            self.last_exit_code = None
             proc, path = self.process, Path(out.name)
 
             def ended() -> None:
