@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
-	lift-baselines-hitl-docs resume-docs nights-docs clean
+	lift-baselines-hitl-docs resume-docs nights-docs asking-dev-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -197,6 +197,17 @@ nights-docs: install
 	rm -rf var/bench-nights
 	$(BIN)/hitl bench nights --config configs/nights.toml --days 3 --day-minutes 10 --data-dir var/bench-nights \
 		--out docs/results/nights/nights.json --figure docs/figures/nights.png --quiet > /dev/null
+
+# docs/benchmarks/nights.md, "Why lift-cube robots asked": the bundled lift policy on lift-cube with the fleet's
+# asking (spread-stall, continuous, cooldown 10) on development seeds, the watchdog at half and at 80% of the
+# horizon (about 3 min on 2 cores)
+asking-dev-docs: install
+	$(BIN)/hitl assist --policy policies/lift-cube --task lift-cube --driver spread-stall --mode continuous --cooldown 10 \
+		--watchdog 0.5 --hand-back-when-held --episodes 30 --seed 7000 --envs 2 --threads 2 --json --quiet \
+		> docs/results/nights/dev/lift-cube-asking-watchdog-0.5.json
+	$(BIN)/hitl assist --policy policies/lift-cube --task lift-cube --driver spread-stall --mode continuous --cooldown 10 \
+		--watchdog 0.8 --hand-back-when-held --episodes 30 --seed 8000 --envs 2 --threads 2 --json --quiet \
+		> docs/results/nights/dev/lift-cube-asking.json
 
 # docs/benchmarks/service.md, "The loop": the demo fleet served with the operator bot helping, 10 minutes per
 # hand-back mode.

@@ -18,6 +18,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from policy.config import DiffusionPolicyConfig
     from policy.diffusion_policy import DiffusionPolicy
     from policy.frames import ObjectFrame
+    from policy.heldout import episode_digest
     from policy.train import TrainConfig, train_policy
     from sim.demos import read_recipe
     from sim.registry import make_task
@@ -82,7 +83,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
             "episodes": ds.num_episodes,
             "train_episodes": [ds.names[i] for i in train_ep],
             "val_episodes": [ds.names[i] for i in val_ep],
-            "val_episode_bytes": {ds.names[i]: (Path(args.data) / ds.names[i]).stat().st_size for i in val_ep},
+            # what identifies them (policy.heldout): their steps' digest, not their files
+            "val_episode_digest": {ds.names[i]: episode_digest(ds, i) for i in val_ep},
             "split_seed": args.seed,
             "val_fraction": ds.config.val_fraction,
             "steps": int(len(ds.obs)),

@@ -4,7 +4,9 @@ The validation episodes are the ones ``hitl train`` held out (their names are in
 the policy's config.json), so calibration never sees a training episode. The
 current end-effector pose of each recorded step is the probe's centre; the
 gripper dimension holds the command in force at that step (the previous
-action's gripper, open at the first step), as in live rollouts.
+action's gripper, open at the first step), as in live rollouts. The folder's
+episodes must be the held-out ones, by their content or by the recipe that
+recorded them (``policy.heldout``).
 
 By construction 1 - quantile of the validation steps lie above the threshold.
 ``policy.evaluate.rollout_check`` measures the same share on the policy's own autonomous
@@ -22,6 +24,7 @@ import torch
 from tqdm import tqdm
 
 from policy.diffusion_policy import DiffusionPolicy
+from policy.heldout import HeldOutError, check_held_out
 from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
 from sim.rotations import quat_to_rot6d
 from storage.dataset import DatasetConfig, DemoDataset, load_dataset
@@ -52,6 +55,13 @@ def validation_uncertainty(
     progress: bool = True,
 ) -> tuple[np.ndarray, list[str]]:
     """U at every step of the named validation episodes found in ``data`` -> (U (M,), episode names used)."""
+    ds, episodes = _validation_episodes(policy, data, val_episodes)
+    return _uncertainty(policy, ds, episodes, config, batch, progress)
+
+
+def _validation_episodes(
+    policy: DiffusionPolicy, data: str | Path, val_episodes: list[str]
+) -> tuple[DemoDataset, np.ndarray]:
     cfg = policy.config
     ds = load_dataset(data, DatasetConfig(obs_horizon=cfg.obs_horizon, action_horizon=cfg.action_horizon))
     wanted = set(val_episodes)
@@ -61,6 +71,18 @@ def validation_uncertainty(
             f"none of the policy's {len(wanted)} validation episodes is in {data}; calibrate on the folder the "
             "policy was trained from (validation episodes are never used for training)"
         )
+    return ds, episodes
+
+
+def _uncertainty(
+    policy: DiffusionPolicy,
+    ds: DemoDataset,
+    episodes: np.ndarray,
+    config: UncertaintyConfig,
+    batch: int,
+    progress: bool,
+) -> tuple[np.ndarray, list[str]]:
+    cfg = policy.config
     index = ds.sample_index(episodes)
     obs, _ = ds.windows(index)
     centers = current_actions(ds, index[:, 0], index[:, 1])
@@ -96,14 +118,12 @@ def calibrate(
         raise CalibrationError("the policy's config.json lists no validation episodes (train with val_fraction > 0)")
     if train & set(val):
         raise CalibrationError(f"episodes listed as both training and validation: {sorted(train & set(val))[:5]}")
-    sizes = info.get("dataset", {}).get("val_episode_bytes") or {}
-    changed = [n for n, size in sizes.items() if (Path(data) / n).is_file() and (Path(data) / n).stat().st_size != size]
-    if changed:
-        raise CalibrationError(
-            f"{len(changed)} validation episode(s) in {data} differ from the ones the policy held out "
-            f"(e.g. {changed[0]}): is this the folder the policy was trained from?"
-        )
-    u, used = validation_uncertainty(policy, data, val, config, progress=progress)
+    ds, episodes = _validation_episodes(policy, data, val)
+    try:  # by content, or by the recipe that recorded them (policy.heldout)
+        held_out = check_held_out(ds, list(episodes), info)
+    except HeldOutError as exc:
+        raise CalibrationError(str(exc)) from None
+    u, used = _uncertainty(policy, ds, episodes, config, 64, progress)
     threshold = float(np.quantile(u, quantile))
     return {
         "threshold": threshold,
@@ -111,6 +131,7 @@ def calibrate(
         "validation_share_above": float(np.mean(u > threshold)),
         "samples": int(len(u)),
         "episodes": used,
+        "episodes_checked": held_out.to_dict(),
         "data": portable(data),
         "uncertainty": config.to_dict(),
         "u_stats": {"mean": float(u.mean()), "median": float(np.median(u)), "max": float(u.max())},

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from policy.diffusion_policy import DiffusionPolicy
+from policy.heldout import HeldOutError, check_held_out
 from policy.mixing import MixedSampler
 from policy.train import TrainConfig, TrainState, train_policy
 from storage import keys
@@ -109,9 +110,32 @@ class FinetuneDataError(ValueError):
     """The data for a fine-tuning run is missing or unusable; the message says what and where."""
 
 
-def pretraining_split(policy: DiffusionPolicy, info: dict, folder: str | Path) -> tuple[dict, dict, list[str]]:
-    """(train arrays, validation arrays, the training episodes' names) of the pretraining set, split
-    exactly as the policy's config.json records it."""
+MAX_LEFT_OUT = 0.05  # the share of named pretraining episodes a re-recording may lose (see pretraining_split)
+
+
+@dataclass(frozen=True)
+class PretrainingSplit:
+    """The pretraining set split exactly as the policy's config.json records it: train / val
+    ({OBS: (M, H, obs_dim), ACTION: (M, C, 10)}), the training episodes' names, the named episodes left
+    out (name: why) and how the episodes were identified (``policy.heldout.HeldOutCheck.to_dict``)."""
+
+    train: dict[str, np.ndarray]
+    val: dict[str, np.ndarray]
+    train_names: list[str]
+    left_out: dict[str, str]
+    checked: dict[str, int]
+
+
+def pretraining_split(policy: DiffusionPolicy, info: dict, folder: str | Path) -> PretrainingSplit:
+    """The policy's pretraining episodes in ``folder``, identified as ``policy.heldout`` does.
+
+    A folder recorded again from the policy's recipe (the fine-tuning job does, on a machine without
+    the data) may hold an episode whose scripted expert failed there although it succeeded where the
+    policy was trained: the dataset leaves unsuccessful episodes out, and so does the split, naming
+    them in ``left_out``. Measured on the bundled cup-stack recipe: seed 129 succeeds in the data the
+    policy was trained on and times out, re-recorded, on this project's machines (deterministically:
+    three recordings, identical steps). More than ``MAX_LEFT_OUT`` of the named episodes missing, or
+    any named episode missing for another reason, means the folder is not the policy's: refused."""
     folder = Path(folder)
     split = info.get("dataset", {})
     train_names, val_names = split.get("train_episodes") or [], split.get("val_episodes") or []
@@ -125,19 +149,31 @@ def pretraining_split(policy: DiffusionPolicy, info: dict, folder: str | Path) -
     cfg = policy.config
     ds = load_dataset(folder, DatasetConfig(obs_horizon=cfg.obs_horizon, action_horizon=cfg.action_horizon))
     index = {n: i for i, n in enumerate(ds.names)}
-    missing = [n for n in [*train_names, *val_names] if n not in index]
-    if missing:
+    named = [*train_names, *val_names]
+    missing = [n for n in named if n not in index]
+    has_recipe = split.get("recipe") is not None
+    left_out = {
+        n: "unsuccessful when recorded again" for n in missing if has_recipe and ds.excluded.get(n) == "unsuccessful"
+    }
+    lost = [n for n in missing if n not in left_out]
+    if lost or len(left_out) > MAX_LEFT_OUT * len(named):
+        example = (lost or missing)[0]
         raise FinetuneDataError(
-            f"{len(missing)} of the policy's pretraining episodes are not in {folder} (e.g. {missing[0]}): "
-            "is this the folder it was trained from?"
+            f"{len(missing)} of the policy's {len(named)} pretraining episodes are not in {folder}'s dataset (e.g. "
+            f"{example}: {ds.excluded.get(example, 'no such file')}): is this the folder it was trained from?"
         )
     if ds.obs.shape[1] != cfg.obs_dim:
         raise FinetuneDataError(f"{folder} holds {ds.obs.shape[1]}-dim observations, the policy takes {cfg.obs_dim}")
+    train_names = [n for n in train_names if n in index]
     train_ids = np.array([index[n] for n in train_names], np.int64)
-    val_ids = np.array([index[n] for n in val_names], np.int64)
+    val_ids = np.array([index[n] for n in val_names if n in index], np.int64)
+    try:
+        checked = check_held_out(ds, [*train_ids.tolist(), *val_ids.tolist()], info)
+    except HeldOutError as exc:
+        raise FinetuneDataError(str(exc)) from None
     train = dict(zip((keys.OBS, keys.ACTION), ds.windows(ds.sample_index(train_ids)), strict=True))
     val = dict(zip((keys.OBS, keys.ACTION), ds.windows(ds.sample_index(val_ids)), strict=True))
-    return train, val, list(train_names)
+    return PretrainingSplit(train, val, train_names, left_out, checked.to_dict())
 
 
 def finetune_policy(

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -76,11 +76,14 @@ class JobData:
 
 @dataclass(frozen=True)
 class Trained:
-    """The fine-tuned policy, its training history, and the pretraining episodes it was mixed with."""
+    """The fine-tuned policy, its training history, the pretraining episodes it was mixed with, those of
+    the policy's that were left out (name: why) and how they were identified (``policy.heldout``)."""
 
     policy: DiffusionPolicy
     history: dict
     pretraining_episodes: list[str]
+    pretraining_left_out: dict[str, str] = field(default_factory=dict)
+    pretraining_checked: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -257,7 +260,7 @@ class JobRun:
         without the pretraining data, it is recorded first (once there are samples to train on)."""
         if not self.request.pretrain_data:
             _record_pretraining(self.info, self.pretrain_folder, self.progress, self.report, self.id)
-        pre_train, _, pre_names = pretraining_split(self.parent, self.info, self.pretrain_folder)
+        pre = pretraining_split(self.parent, self.info, self.pretrain_folder)
         steps = self.cfg.steps_for(len(data.arrays[keys.OBS]))
         self._update(stage="train")
 
@@ -266,9 +269,9 @@ class JobRun:
             self._update(progress=0.05 + 0.7 * state.step / steps)
 
         child, history = finetune_policy(
-            self.parent, data.arrays, pre_train, self.cfg, self.work / "train", self.progress, on_checkpoint
+            self.parent, data.arrays, pre.train, self.cfg, self.work / "train", self.progress, on_checkpoint
         )
-        return Trained(child, history, pre_names)
+        return Trained(child, history, pre.train_names, pre.left_out, pre.checked)
 
     def write_candidate(self, data: JobData, trained: Trained) -> Candidate:
         """The new version's folder in the work folder: its weights, and a config.json with its manifest
@@ -284,6 +287,8 @@ class JobRun:
             "pretraining": {
                 "folder": pretrain_folder,
                 "episodes": trained.pretraining_episodes,
+                "left_out": trained.pretraining_left_out,
+                "checked": trained.pretraining_checked,
                 "ratio": 1 - cfg.ratio,
             },
             **data.manifest,

@@ -348,7 +348,7 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
     parent, info = load_policy(cfg.policy)
     if cfg.stride > 1 and (parent.config.obs_horizon > 1 or parent.config.action_horizon > 1):
         raise ValueError(f"stride {cfg.stride} needs a policy with observation and action horizons of 1")
-    pre_train, _, _ = pretraining_split(parent, info, resolve(info["dataset"]["folder"]))
+    pre_train = pretraining_split(parent, info, resolve(info["dataset"]["folder"])).train
     tasks = [cfg.train_task, *cfg.unseen]
     start = time.perf_counter()
 
