@@ -192,7 +192,8 @@ resume-docs: install
 
 # docs/benchmarks/nights.md: 3 days of the fleet of configs/nights.toml with the operator bot (10 minutes each) and 2
 # nights of the service's own fine-tuning job between them; the pretraining data is recorded on the first night where
-# data/ lacks it (about 75 min on 2 cores, plus up to 40 min of recording on a fresh clone).
+# data/ lacks it (about 2 h 15 min on 2 cores on a fresh clone, 1 h of it night 1 with its recording); the JSON is
+# written after every day and night.
 nights-docs: install
 	rm -rf var/bench-nights
 	$(BIN)/hitl bench nights --config configs/nights.toml --days 3 --day-minutes 10 --data-dir var/bench-nights \

@@ -33,6 +33,7 @@ import subprocess
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -142,8 +143,10 @@ class Service:
             self.proc.kill()
 
 
-def run_nights(plan: NightsPlan) -> dict:
-    """Runs ``plan.days`` days with a night between each two; returns the report (``nights_report``)."""
+def run_nights(plan: NightsPlan, on_progress: Callable[[dict], None] | None = None) -> dict:
+    """Runs ``plan.days`` days with a night between each two; returns the report (``nights_report``).
+    ``on_progress`` gets the report so far (``complete`` false) after every day and night, so that a run
+    stopped partway (a machine lent for less time than the run takes) still leaves what it measured."""
     data_dir = Path(plan.data_dir) if plan.data_dir is not None else _temp_dir()
     if (data_dir / "hitl.db").exists():
         raise ValueError(f"{data_dir} already holds a service database: a run starts from the bundled policies")
@@ -155,10 +158,14 @@ def run_nights(plan: NightsPlan) -> dict:
         for day in range(1, plan.days + 1):
             if day > 1:
                 nights.append(_night(service, plan, day - 1))
+                if on_progress is not None:
+                    on_progress(nights_report(service.sessions, service.settings, plan, days, nights, complete=False))
                 if nights[-1]["exit_code"] is None:  # the job never ended: the run stops with what it has
                     break
                 _morning(service, FIRST_MORNING + timedelta(days=day - 1))
             days.append(_day(service, plan, day))
+            if on_progress is not None:
+                on_progress(nights_report(service.sessions, service.settings, plan, days, nights, complete=False))
     finally:
         service.stop()
     return nights_report(service.sessions, service.settings, plan, days, nights)
@@ -319,8 +326,11 @@ def _jobs(sessions, since: datetime) -> list[dict]:
     return out
 
 
-def nights_report(sessions, settings: Settings, plan: NightsPlan, days: list[Window], nights: list[dict]) -> dict:
-    """What the database holds of each day, per task, and each night's jobs; ``goals`` on the shifted lift tasks."""
+def nights_report(
+    sessions, settings: Settings, plan: NightsPlan, days: list[Window], nights: list[dict], complete: bool = True
+) -> dict:
+    """What the database holds of each day, per task, and each night's jobs; ``goals`` on the shifted lift
+    tasks; ``complete``: false for the report of a run still under way (``run_nights``'s ``on_progress``)."""
     with sessions() as s:
         episodes = list(s.scalars(select(EpisodeRecord)))
         segments = list(s.scalars(select(SegmentRecord)))
@@ -346,6 +356,7 @@ def nights_report(sessions, settings: Settings, plan: NightsPlan, days: list[Win
             }
         )
     return {
+        "complete": complete,
         "date": datetime.now(UTC).date().isoformat(),
         "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores",
         "config": _config_name(plan.config),

@@ -206,13 +206,17 @@ def _cmd_bench_nights(args: argparse.Namespace) -> int:
         env=_settings_env(args.set),
         progress=not args.quiet,
     )
-    result = run_nights(plan)
-    result["quick"] = bool(args.quick)
-    result["command"] = "hitl " + " ".join(sys.argv[1:])
+    command = "hitl " + " ".join(sys.argv[1:])
+
+    def write(report: dict) -> None:  # the report so far after every day and night, then the whole run's
+        report |= {"quick": bool(args.quick), "command": command}
+        if args.out:
+            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.out).write_text(json.dumps(report, indent=2) + "\n")
+
+    result = run_nights(plan, on_progress=write)
+    write(result)
     text = json.dumps(result, indent=None if args.json else 2)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
     if args.figure:
         plot_nights(result, Path(args.figure))
     print(text)

@@ -59,6 +59,10 @@ def test_days_and_nights_through_the_service_with_a_crash_mid_night(quick_fleet)
             recorded = {seg.id for seg in s.scalars(select(SegmentRecord).where(SegmentRecord.status == "closed"))}
             versions_before = [(v.id, v.status) for v in s.scalars(select(PolicyVersion))]
         assert recorded, "day 1 recorded no takeover"
+        # the report so far, as run_nights hands it on after every day: day 1 counted, marked incomplete
+        so_far = nights_report(sessions, service.settings, plan, days, [], complete=False)
+        assert so_far["complete"] is False and len(so_far["days"]) == 1
+        assert so_far["days"][0]["per_task"]["lift-cube"]["episodes"] >= 1
 
         # night 1: the scheduler fires on the moved clock; the job is killed while it trains
         night_start = datetime.now(UTC)
@@ -100,6 +104,7 @@ def test_days_and_nights_through_the_service_with_a_crash_mid_night(quick_fleet)
     finally:
         service.stop()
     report = nights_report(sessions, service.settings, plan, days, nights)
+    assert report["complete"] is True
     day1, day2 = report["days"]
     for day in (day1, day2):
         for task in ("lift-cube", "lift-hammer"):
