@@ -17,9 +17,9 @@ identify one:
   the same seeds with the same execution noise, but not always bit for bit the same data where the
   machine, the simulator's build or the project's code differ: the bundled cup-stack recipe's seed 129
   succeeded in the data the policy was trained on and times out, recorded again on this project's
-  machines (three recordings there, identical to each other). An episode whose own metadata says it was recorded that way (task,
-  seed, expert source, execution noise) counts as the held-out episode, recorded again, and the record
-  says how many were identified that way (``by_recipe``).
+  machines (three recordings there, identical to each other). An episode whose own metadata says it
+  was recorded that way (task, seed, expert source, execution noise) counts as the held-out episode,
+  recorded again, and the record says how many were identified that way (``by_recipe``).
 
 Anything else (a folder recorded without the noise, or by a different task or seed under the same
 names) is refused.
