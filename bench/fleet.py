@@ -22,6 +22,7 @@ The policy and uncertainty are the real ones (the bundled policy of each task).
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import multiprocessing as mp
 import tempfile
 import threading
@@ -34,8 +35,9 @@ from tqdm import tqdm
 from server.db import make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.fleet import Fleet
-from server.procstats import memory_mb, processes_cpu_seconds, worker_pids
+from server.procstats import descendant_pids, memory_mb, processes_cpu_seconds, worker_pids
 from server.settings import RobotGroup, Settings
+from server.workers import WORKERS
 from sim.spaces import TeleopCommand
 
 GOAL_SHARE_OF_RAW_AT_16 = 0.7  # fleet env steps/s against raw physics at 16 robots (docs/benchmarks/serving.md)
@@ -78,6 +80,13 @@ def _take_over(fleet: Fleet) -> None:
     """Robot 0 asks for help and the bench operator claims it (continuous mode: it keeps control)."""
     fleet.request_help(0, "benchmark")
     fleet.claim(0, "bench")
+
+
+def available_workers() -> tuple[str, ...]:
+    """The back ends whose physics runs apart from the control loop (all but ``in-process``), less
+    those whose optional extra is not installed here (``ray``)."""
+    names = [w for w in WORKERS if w != "in-process"]
+    return tuple(w for w in names if w != "ray" or importlib.util.find_spec("ray") is not None)
 
 
 def fleet_throughput(
@@ -129,7 +138,11 @@ def fleet_throughput(
         time.sleep(1.0)
         with fleet.lock:
             pids = worker_pids(fleet.robots.values())
-        workers_cpu0 = processes_cpu_seconds(pids)
+        # the back end's own processes (a local Ray instance's raylet, GCS and idle workers), not the physics
+        others = {k: p for k, p in descendant_pids().items() if p not in set(pids.values())}
+        overhead = getattr(fleet.worker_factory, "overhead", None)  # the ray back end's API time in the loop
+        overhead0 = (overhead.seconds, overhead.calls) if overhead is not None else None
+        workers_cpu0, others_cpu0 = processes_cpu_seconds(pids), processes_cpu_seconds(others)
         with fleet.lock:
             steps0 = fleet.env_steps
             ticks0 = fleet.ticks
@@ -146,6 +159,9 @@ def fleet_throughput(
             teleop_periods = np.array(fleet.robots[0].action_periods)
             cpu = fleet.loop_cpu_seconds - cpu0
         workers_cpu = processes_cpu_seconds(pids) - workers_cpu0
+        others_cpu = processes_cpu_seconds(others) - others_cpu0
+        if overhead is not None:
+            ray_s, ray_calls = overhead.seconds - overhead0[0], overhead.calls - overhead0[1]
         server = memory_mb()
         workers = [memory_mb(pid) for pid in pids.values()]
         peaks = [w["peak_rss_mb"] for w in workers if w["peak_rss_mb"] is not None]
@@ -168,6 +184,11 @@ def fleet_throughput(
         "loop_cpu_share": cpu / seconds,
         # CPU the physics processes spent per env step (stepping, building frames, pipes, switching)
         "workers_cpu_ms_per_env_step": workers_cpu / max(steps, 1) * 1e3,
+        # CPU of the back end's other processes per env step (Ray's raylet, GCS and idle workers; ~0 else)
+        "backend_processes_cpu_ms_per_env_step": others_cpu / max(steps, 1) * 1e3,
+        # ray: the control loop's time in Ray's API (send, check, fetch), per tick and per call
+        "ray_api_ms_per_tick": ray_s / max(ticks, 1) * 1e3 if overhead is not None else None,
+        "ray_api_us_per_call": ray_s / max(ray_calls, 1) * 1e6 if overhead is not None else None,
         "teleop_action_period_p50_ms": teleop_p50,
         # target: command-to-applied p99 within one control period + 20 ms. A tick moves only the
         # robots whose physics answered, so the control period is the teleoperated robot's own:
@@ -217,11 +238,13 @@ def bench_fleet(
     progress: bool = True,
     torch_threads: int = 1,
     command_hz: float = 30.0,
-    workers: tuple[str, ...] = ("process", "pool"),
+    workers: tuple[str, ...] | None = None,
     robots_per_process: int = 8,
     device: str = "cpu",
 ) -> dict:
-    """For each size: raw physics, then the fleet on each worker back end (each in a fresh process)."""
+    """For each size: raw physics, then the fleet on each worker back end (each in a fresh process;
+    default: every back end that runs physics in processes of its own and is installed here)."""
+    workers = tuple(workers) if workers is not None else available_workers()
     rows = []
     todo = [(n, w) for n in sizes for w in workers]
     with tempfile.TemporaryDirectory() as tmp:

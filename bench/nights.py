@@ -60,13 +60,15 @@ TRAINING_TASK = "lift-cube"
 class NightsPlan:
     """days: at least 2 (one night); a day ends after ``day_minutes`` or once every task has finished
     ``day_episodes`` episodes, whichever comes first (one of them must be set); night_timeout_s: the
-    longest a night's job may take before the run stops with what it has."""
+    longest a night's job may take before the run stops with what it has (3 hours: on a fresh clone the
+    first night also records every lineage's pretraining data, 56 minutes on an idle 2-core machine, and
+    a job that shares the machine runs at idle priority)."""
 
     config: Path = NIGHTS_CONFIG
     days: int = 3
     day_minutes: float | None = 12.0
     day_episodes: int | None = None
-    night_timeout_s: float = 3600.0
+    night_timeout_s: float = 3 * 3600.0
     data_dir: Path | None = None
     env: dict[str, str] = field(default_factory=dict)
     progress: bool = True
@@ -168,7 +170,8 @@ def run_nights(plan: NightsPlan, on_progress: Callable[[dict], None] | None = No
                 on_progress(nights_report(service.sessions, service.settings, plan, days, nights, complete=False))
     finally:
         service.stop()
-    return nights_report(service.sessions, service.settings, plan, days, nights)
+    # complete only when every planned day ran: a night whose job never ended stops the run short
+    return nights_report(service.sessions, service.settings, plan, days, nights, complete=len(days) == plan.days)
 
 
 def _temp_dir() -> Path:
@@ -330,7 +333,8 @@ def nights_report(
     sessions, settings: Settings, plan: NightsPlan, days: list[Window], nights: list[dict], complete: bool = True
 ) -> dict:
     """What the database holds of each day, per task, and each night's jobs; ``goals`` on the shifted lift
-    tasks; ``complete``: false for the report of a run still under way (``run_nights``'s ``on_progress``)."""
+    tasks; ``complete``: false for the report of a run still under way (``run_nights``'s ``on_progress``) or
+    stopped short by a night whose job never ended."""
     with sessions() as s:
         episodes = list(s.scalars(select(EpisodeRecord)))
         segments = list(s.scalars(select(SegmentRecord)))

@@ -111,7 +111,7 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         torch_threads=args.torch_threads,
         command_hz=args.command_hz,
-        workers=tuple(args.worker),
+        workers=tuple(args.worker) if args.worker else None,
         robots_per_process=args.robots_per_process,
         device=args.device,
     )
@@ -269,7 +269,11 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--torch-threads", type=int, default=1, help="server-side torch threads (the setting)")
     q.add_argument("--command-hz", type=float, default=30.0, help="the bench operator's command stream rate")
     q.add_argument(
-        "--worker", nargs="+", choices=["process", "pool"], default=["process", "pool"], help="worker back ends"
+        "--worker",
+        nargs="+",
+        choices=["process", "pool", "ray"],
+        default=None,
+        help="worker back ends (default: process, pool and, where Ray is installed, ray; side by side in one run)",
     )
     q.add_argument("--robots-per-process", type=int, default=8, help="pool back end (the setting)")
     q.add_argument("--device", default="cpu", help="where the policy and the uncertainty run: cpu, cuda, cuda:N")
@@ -309,7 +313,9 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--days", type=int, default=None, help="days, with a night between each two (default 3; --quick 2)")
     q.add_argument("--day-minutes", type=float, default=None, help="a day's length (default 12 without --day-episodes)")
     q.add_argument("--day-episodes", type=int, default=None, help="or: a day ends once each task finished this many")
-    q.add_argument("--night-timeout", type=float, default=60.0, help="minutes a night's job may take at most")
+    q.add_argument(
+        "--night-timeout", type=float, default=180.0, help="minutes a night's job may take before the run stops"
+    )
     q.add_argument("--data-dir", type=Path, default=None, help="the run's service folder (default: a temp dir)")
     q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown_steps=20")
     q.add_argument("--quick", action="store_true", help="a tiny fleet and job, for CI (2 days, minutes)")

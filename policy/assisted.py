@@ -123,7 +123,7 @@ class ExpertOperator:
         """Plans from the view, or carries on with its plan when the policy has not moved the robot
         since this operator's last command (only hold steps in between: the clock has not moved)."""
         self.events[robot_id] = self.events.get(robot_id, 0) + 1
-        expert = self.experts.setdefault(robot_id, make_expert(self.task_name))
+        expert = self.experts.setdefault(robot_id, make_expert(self.task_name, retry=True))
         view = OperatorView.from_frame(self.task_name, frame)
         rng = np.random.default_rng([self.seeds[robot_id], self.events[robot_id]])
         expert.resume(view, rng, carry_on=self.clock.get(robot_id) == frame.clock)

@@ -63,7 +63,8 @@ class Fleet(ControlLoop, OperatorMethods):
         self.loop_cpu_seconds = 0.0  # CPU time of the control loop's ticks
         self.operator_busy: dict[str, float] = {}  # seconds in control, per operator
         self.operator_since: dict[str, float] = {}  # first claim, per operator
-        self._make_worker = workers if workers is not None else WORKERS[settings.worker](settings)
+        # how robots are started (the back end); public for the benchmarks, which read its overheads
+        self.worker_factory = workers if workers is not None else WORKERS[settings.worker](settings)
         self._build()
 
     @property

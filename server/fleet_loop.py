@@ -60,7 +60,7 @@ class ControlLoop:
     policies: PolicySwap
     lock: threading.RLock
     _stop: threading.Event
-    _make_worker: WorkerFactory
+    worker_factory: WorkerFactory
     ticks: int
     env_steps: int
     tick_periods: deque
@@ -69,7 +69,7 @@ class ControlLoop:
 
     # -- workers and episodes -------------------------------------------------------------------------------
     def _spawn(self, robot: Robot) -> None:
-        robot.worker = self._make_worker(robot.id, robot.task)
+        robot.worker = self.worker_factory(robot.id, robot.task)
         robot.worker.prioritize(Priority.BACKGROUND)
         self._new_episode(robot)
 

@@ -14,7 +14,7 @@ import logging
 import threading
 from dataclasses import dataclass
 
-from sqlalchemy import and_, insert, or_, select, update
+from sqlalchemy import and_, case, insert, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -48,16 +48,25 @@ def _ensure_row(sessions: sessionmaker, name: str) -> None:
             s.rollback()
 
 
-def acquire(sessions: sessionmaker, name: str, owner: str, ttl: float) -> Lease | None:
-    """The lease, or None when someone else holds a lease that has not expired."""
+def acquire(sessions: sessionmaker, name: str, owner: str, ttl: float, reentrant: bool = False) -> Lease | None:
+    """The lease, or None when someone else holds a lease that has not expired.
+
+    reentrant: an owner that already holds the lease gets it again, renewed, with the same fence (an
+    operator claiming from a second browser tab is still the one holder); otherwise it is refused too."""
     if ttl <= 0:
         raise ValueError(f"ttl must be > 0, got {ttl!r}")
     _ensure_row(sessions, name)
+    free = or_(JobLease.owner.is_(None), JobLease.expires_at < db_epoch())
+    mine = and_(JobLease.owner == owner, JobLease.expires_at >= db_epoch())
     with sessions() as s:
         done = s.execute(
             update(JobLease)
-            .where(JobLease.name == name, or_(JobLease.owner.is_(None), JobLease.expires_at < db_epoch()))
-            .values(owner=owner, fence=JobLease.fence + 1, expires_at=db_epoch() + ttl)
+            .where(JobLease.name == name, or_(free, mine) if reentrant else free)
+            .values(
+                owner=owner,
+                fence=case((mine, JobLease.fence), else_=JobLease.fence + 1) if reentrant else JobLease.fence + 1,
+                expires_at=db_epoch() + ttl,
+            )
             .execution_options(synchronize_session=False)
         )
         s.commit()

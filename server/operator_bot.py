@@ -1,6 +1,10 @@
 """The simulated operator as an API client: it watches the queue, claims the most urgent robot,
 drives it with the task's scripted expert from the operator view, and hands back.
 
+It drives as the in-process simulated operator does (``policy.assisted.ExpertOperator``): the expert
+tries again when a grasp fails (``Expert.retry``), and it gives up, handing back, once the episode
+has run ``OVERTIME`` horizons of steps, where the in-process episodes stop (``policy.lockstep``).
+
 It uses only the public REST API, so it is also an example client for users.
 """
 
@@ -13,12 +17,21 @@ import time
 import httpx
 import numpy as np
 
+from policy.lockstep import OVERTIME
 from sim.registry import make_expert
 from sim.spaces import TeleopLimits
 from sim.view import OperatorView, ViewUnavailable
 
 log = logging.getLogger("hitl.operator_bot")
 LIMITS = TeleopLimits()
+
+
+def overtime(view: dict) -> bool:
+    """Whether the episode has run ``OVERTIME`` horizons of steps (holds included): there the simulated
+    operator gives up and hands back, as the in-process one's episodes stop (``policy.lockstep``), and
+    the episode, past its horizon, ends as a timeout."""
+    step, horizon = view.get("step"), view.get("horizon")
+    return isinstance(step, int) and isinstance(horizon, int) and horizon > 0 and step >= OVERTIME * horizon
 
 
 class TakeoverOver(Exception):
@@ -93,6 +106,10 @@ class OperatorBot:
                 if body is None:
                     raw = self._get(f"/robots/{robot_id}/view")
                     view = self._view(robot_id, raw)
+                    if overtime(raw):
+                        log.info("robot %d: %d steps into its episode, giving up", robot_id, raw["step"])
+                        self.client.post(f"{self.api}/robots/{robot_id}/release")
+                        break
                     if self.hands_back_when_held and not held_at_start and expert.holding(view):
                         log.info("robot %d: object held after %d steps, handing back", robot_id, steps)
                         self.client.post(f"{self.api}/robots/{robot_id}/release")
@@ -136,11 +153,11 @@ class OperatorBot:
         since its last command (the robot's clock is where that command left it)."""
         episode = raw.get("episode_seed")
         if episode is None:  # a service that does not report its episodes: a fresh plan per takeover
-            expert = make_expert(task.name)
+            expert = make_expert(task.name, retry=True)
             expert.resume(task, np.random.default_rng([seed, robot_id]))
             return expert
         if self._driving.get(robot_id, [None])[0] != episode:
-            self._driving[robot_id] = [episode, make_expert(task.name), None]
+            self._driving[robot_id] = [episode, make_expert(task.name, retry=True), None]
         _, expert, left_at = self._driving[robot_id]
         rng = np.random.default_rng([int(episode), int(raw.get("events") or 0)])
         expert.resume(task, rng, carry_on=left_at is not None and left_at == raw.get("clock"))

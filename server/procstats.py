@@ -46,3 +46,20 @@ def worker_pids(robots) -> dict[str, int]:
     """The processes the robots' physics run in, once each (robots sharing a pooled process share it)."""
     pids = {getattr(r.worker, "pid", None) for r in robots if r.worker is not None}
     return {f"worker{pid}": pid for pid in sorted(p for p in pids if p)}
+
+
+def descendant_pids(root: int | None = None) -> dict[str, int]:
+    """Every live process descended from ``root`` (default: this one), by ``/proc``'s parent links:
+    with ``worker_pids`` removed, the back end's own processes (a local Ray instance's raylet and
+    GCS, say)."""
+    root = os.getpid() if root is None else root
+    parents: dict[int, int] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                parents[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+    found, frontier = set(), {root}
+    while frontier:
+        frontier = {pid for pid, parent in parents.items() if parent in frontier and pid not in found}
+        found |= frontier
+    return {f"child{pid}": pid for pid in sorted(found)}

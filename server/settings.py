@@ -195,12 +195,23 @@ class Settings(BaseSettings):
         pattern=r"^(cpu|cuda(:\d+)?)$",
         description="where the policies and the uncertainty run: cpu, cuda or cuda:N (physics: CPU workers)",
     )
-    worker: Literal["process", "pool", "in-process"] = Field(
+    worker: Literal["process", "pool", "in-process", "ray"] = Field(
         "process",
-        description="robot back end: a process per robot, robots_per_process robots per process (pool), or tasks "
-        "stepped in the control thread",
+        description="robot back end: a process per robot, robots_per_process robots per process (pool) or per Ray "
+        "actor (ray: pip install '.[ray]'), or tasks stepped in the control thread",
     )
-    robots_per_process: int = Field(8, ge=1, le=256, description="pool back end: robots sharing one process")
+    robots_per_process: int = Field(
+        8, ge=1, le=256, description="pool and ray back ends: robots sharing one process (one actor)"
+    )
+    ray_address: str | None = Field(
+        None,
+        description="ray back end: the cluster to join (host:port or ray://host:port); unset: a local instance "
+        "with this machine's CPUs",
+    )
+    ray_namespace: str = Field("hitl", min_length=1, max_length=64, description="Ray namespace of this fleet's actors")
+    ray_cpus_per_actor: float = Field(
+        1.0, gt=0, le=64, description="ray back end: the CPU share each robot actor reserves on its node"
+    )
     worker_niceness: int = Field(
         10, ge=0, le=19, description="CPU priority of the physics workers below the control loop (os.nice)"
     )
@@ -223,6 +234,15 @@ class Settings(BaseSettings):
     def _known_shadows(cls, v: list[str]) -> list[str]:
         for name in v:
             cls._known_signal(name)
+        return v
+
+    @field_validator("worker")
+    @classmethod
+    def _worker_installed(cls, v: str) -> str:
+        from server.ray_cluster import RayUnavailable, ray_available
+
+        if v == "ray" and not ray_available():
+            raise ValueError(str(RayUnavailable("worker = 'ray' needs Ray, an optional extra: pip install '.[ray]'")))
         return v
 
     @model_validator(mode="after")

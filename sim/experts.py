@@ -16,6 +16,7 @@ pause looks the same at every step, and a policy trained on it can learn a
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -38,6 +39,12 @@ ALIGNED = 0.01
 NEAR = 0.10
 MIN_APPROACH = 0.02
 LOOSE = (0.025, 0.3)
+# the simulated operator tries again (``Expert.retry``) when its plan ended this many steps ago without the
+# episode succeeding (the lift came up empty), or when the gripper moved less than STUCK_MOVED (m) over
+# STUCK_STEPS steps short of its target (pushing against the object): a person goes back for the object
+RETRY_AFTER = 5
+STUCK_STEPS = 15
+STUCK_MOVED = 0.005
 # Gripper pointing down (grip-site z = world -z) at yaw 0. The Panda's fingers
 # close along the site's x axis, so a grasped bar lies along the site's y axis;
 # "yaw" is the heading of that y axis. At yaw 0 the fingers close along world y.
@@ -88,7 +95,16 @@ def closest_yaw(current: float, target: float, symmetry: float) -> float:
 
 
 class Expert:
-    """Runs a list of phases, built per episode by ``plan``."""
+    """Runs a list of phases, built per episode by ``plan``.
+
+    ``retry`` (off for demonstrations, on for the simulated operator): when the plan has run to its end
+    and ``RETRY_AFTER`` steps later the episode is still going (it ends at success), or when the gripper
+    is stuck short of its target (``STUCK_STEPS``, ``STUCK_MOVED``), the expert plans again from the
+    scene without ``from_here``'s shortcut (from the approach height, over the object), as a person
+    whose grasp came up empty or whose fingers hit the object tries again; ``retries`` counts the
+    attempts. Without it, such a takeover went on until the operator's own limit: 1000 steps on
+    lift-hammer and lift-hook, where the shortcut's low approach ran the fingers into the object
+    (docs/benchmarks/nights.md)."""
 
     name = "expert"
 
@@ -98,6 +114,11 @@ class Expert:
         self._steps_in_phase = 0
         self._pause_left = 0
         self.speed = 0.02
+        self.retry = False
+        self.retries = 0
+        self._rng: np.random.Generator | None = None
+        self._ended = 0  # steps commanded since the plan ran to its end
+        self._trail: deque = deque(maxlen=STUCK_STEPS)  # the end effector's last positions (retry only)
 
     def plan(self, task: Task, rng: np.random.Generator) -> list[Phase]:
         raise NotImplementedError
@@ -105,7 +126,9 @@ class Expert:
     def reset(self, task: Task, rng: np.random.Generator) -> None:
         self.speed = float(rng.uniform(0.012, 0.022))
         self.phases = self.plan(task, rng)
-        self._i, self._steps_in_phase, self._pause_left = 0, 0, 0
+        self._i, self._steps_in_phase, self._pause_left, self._ended = 0, 0, 0, 0
+        self._rng = rng
+        self._trail.clear()
 
     def resume(self, task: Task, rng: np.random.Generator, carry_on: bool = False) -> None:
         """Takes over mid-episode: plans as ``reset`` does, then skips the phases whose work the scene
@@ -151,6 +174,10 @@ class Expert:
         return self._i >= len(self.phases)
 
     def act(self, task: Task) -> TeleopCommand:
+        if self.retry and self._rng is not None and self._failed(task):
+            self.retries += 1
+            self.reset(task, self._rng)  # the whole plan, from the approach height (no shortcut)
+            self._i = min(self.start_phase(task), len(self.phases) - 1)
         phase = self.phases[min(self._i, len(self.phases) - 1)]
         pos, yaw = phase.target(task)
         cur_pos, cur_rot = task.ee_pose()
@@ -175,6 +202,22 @@ class Expert:
     def _advance(self) -> None:
         self._i += 1
         self._steps_in_phase = 0
+        self._trail.clear()
+
+    def _failed(self, task: Task) -> bool:
+        """The plan ended ``RETRY_AFTER`` steps ago and the episode goes on, or the gripper is stuck
+        short of a moving phase's target (see the class)."""
+        if self.done:
+            self._ended += 1
+            return self._ended > RETRY_AFTER
+        if self._pause_left > 0:
+            return False
+        phase = self.phases[self._i]
+        pos = task.ee_pose()[0]
+        self._trail.append(pos)
+        moved = np.linalg.norm(self._trail[-1] - self._trail[0])
+        short = np.linalg.norm(pos - np.asarray(phase.target(task)[0])) > max(phase.tol, STUCK_MOVED)
+        return len(self._trail) == STUCK_STEPS and moved < STUCK_MOVED and short
 
 
 class LiftExpert(Expert):

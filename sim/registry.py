@@ -39,6 +39,10 @@ def make_task(name: str) -> Task:
     return TASKS[name]()
 
 
-def make_expert(name: str) -> Expert:
+def make_expert(name: str, retry: bool = False) -> Expert:
+    """The task's scripted expert; ``retry``: as the simulated operator, which tries again when a plan
+    ends without success (``Expert.retry``; demonstrations are recorded without)."""
     _check(name)
-    return EXPERTS[name]()
+    expert = EXPERTS[name]()
+    expert.retry = retry
+    return expert

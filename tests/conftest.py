@@ -61,3 +61,14 @@ def postgres_url():
     finally:
         subprocess.run([*as_user, _pg_bin("pg_ctl"), "-D", data, "-m", "immediate", "stop"], capture_output=True)
         shutil.rmtree(root, ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def ray_local():
+    """A local Ray instance for the session (the ``ray`` back end's tests): 2 CPUs, no dashboard; the
+    service's ``server.ray_cluster.connect`` finds it initialized and uses it."""
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, namespace="hitl-tests", log_to_driver=False)
+    yield ray
+    ray.shutdown()

@@ -106,6 +106,7 @@ async def operator_view(robot_id: Id, fleet: FleetDep, _: Viewer) -> OperatorVie
         episode_seed=robot.seed,
         step=frame.t if frame else None,
         clock=frame.clock if frame else None,
+        horizon=frame.horizon if frame else None,
         events=robot.events,
     )
 

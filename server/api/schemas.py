@@ -161,6 +161,7 @@ class OperatorView(BaseModel):
     episode_seed: int | None = Field(None, description="the seed of the robot's current episode")
     step: int | None = Field(None, description="steps since the episode's reset, holds included (frame t)")
     clock: int | None = Field(None, description="steps that count against the horizon (holds do not)")
+    horizon: int | None = Field(None, description="the episode's horizon, in clock steps")
     events: int = Field(0, description="assistance requests in the current episode")
 
 

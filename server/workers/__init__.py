@@ -5,6 +5,8 @@
 - ``in_process``: ``InProcessWorker``, the robot's task stepped in the caller's thread.
 - ``pool``: ``PoolWorker``, several robots per process, so one wake-up serves several robots' steps
   (a process per robot spends much of a small machine's CPU switching between them).
+- ``ray_actors``: ``RayWorker``, several robots per Ray actor, on a local instance or a cluster
+  (``pip install '.[ray]'``; Ray is imported only when used).
 - ``registry``: ``WORKERS``, the back ends the settings' ``worker`` name selects from.
 """
 

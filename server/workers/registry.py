@@ -1,8 +1,8 @@
 """The worker back ends by name: the settings' ``worker`` selects the factory built from the settings.
 
 Kept apart from the contract (``server.workers.base``), so that a back end imports the contract and
-the registry imports the back ends, and nothing imports back up. A new back end (Ray actors, say)
-is a module implementing ``RobotWorker`` and one line here.
+the registry imports the back ends, and nothing imports back up. A new back end is a module
+implementing ``RobotWorker`` and one line here.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from server.workers.base import WorkerFactory
 from server.workers.in_process import in_process_workers
 from server.workers.pool import PoolFactory
 from server.workers.process import process_workers
+from server.workers.ray_actors import RayFactory
 
 if TYPE_CHECKING:
     from server.settings import Settings
@@ -27,4 +28,5 @@ WORKERS: dict[str, Callable[[Settings], WorkerFactory]] = {
     "process": lambda s: process_workers(s.worker_niceness),
     "pool": lambda s: pool_workers(s.worker_niceness, s.robots_per_process),
     "in-process": lambda s: in_process_workers(),
+    "ray": lambda s: RayFactory(s, s.robots_per_process, s.ray_cpus_per_actor),
 }

@@ -1,10 +1,10 @@
-"""``hitl bench fleet``'s measurement on a real fleet with the pool back end: steps, latency, memory."""
+"""``hitl bench fleet``'s measurement on a real fleet (pool and ray back ends): steps, latency, memory, overhead."""
 
 import os
 
 import numpy as np
 
-from bench.fleet import fleet_goals, fleet_throughput
+from bench.fleet import available_workers, fleet_goals, fleet_throughput
 
 
 def test_a_pooled_fleet_steps_every_robot_and_reports_its_memory(tmp_path):
@@ -33,3 +33,16 @@ def test_the_goals_say_per_back_end_whether_this_run_met_them():
     assert goals["share_of_raw_at_16"] == 0.7 and goals["share_of_raw_at_16_met"] == {"process": False, "pool": True}
     assert goals["server_mb_per_added_robot_met"] == {"process": False, "pool": True}
     assert fleet_goals(rows[:1], {})["share_of_raw_at_16_met"] == {}  # no fleet of 16: nothing claimed
+
+
+def test_a_ray_fleet_steps_every_robot_and_reports_rays_overhead(tmp_path, ray_local):
+    out = fleet_throughput("lift-cube", 3, 2.0, tmp_path / "var", worker="ray", robots_per_process=2)
+    assert out["worker"] == "ray" and out["worker_processes"] == 2  # 3 robots, 2 per actor
+    assert out["env_steps_per_s"] > 0 and out["commands_applied"] > 0
+    assert out["workers_cpu_ms_per_env_step"] > 0  # the actors' processes, found by their pids
+    assert out["ray_api_ms_per_tick"] > 0 and out["ray_api_us_per_call"] > 0
+    assert out["backend_processes_cpu_ms_per_env_step"] > 0  # the local instance's raylet and GCS work too
+
+
+def test_the_default_back_ends_are_those_installed_here():
+    assert available_workers() == ("process", "pool", "ray")  # the test extra installs Ray

@@ -109,7 +109,7 @@ def test_days_and_nights_through_the_service_with_a_crash_mid_night(quick_fleet)
     for day in (day1, day2):
         for task in ("lift-cube", "lift-hammer"):
             t = day["per_task"][task]
-            assert t["episodes"] >= 1 and t["requests_per_episode"] > 0, day
+            assert t["episodes"] >= 1 and t["requests_per_episode"] > 0, (task, day, days[0].bot, days[-1].bot)
             assert t["assisted_steps_per_episode"] > 0 and t["operator_seconds_per_episode"] > 0
             assert t["versions"] == {"policy@1": t["episodes"]}  # the refused candidate never served
     assert report["nights"][0]["jobs"][0]["gate"]["promote"] is False

@@ -109,3 +109,57 @@ def test_ttl_must_be_positive(sessions):
     s, _ = sessions
     with pytest.raises(ValueError, match="ttl"):
         acquire(s, "job", "a", ttl=0)
+
+
+def test_the_same_owner_may_take_its_own_lease_again_when_reentrant(sessions):
+    s, _ = sessions
+    a = acquire(s, "robot/3", "ana", ttl=30, reentrant=True)
+    again = acquire(s, "robot/3", "ana", ttl=30, reentrant=True)
+    assert again is not None and again.fence == a.fence  # the same holder: the same fence, renewed
+    assert acquire(s, "robot/3", "ana", ttl=30) is None  # not reentrant: held is held
+    assert acquire(s, "robot/3", "ben", ttl=30, reentrant=True) is None
+    assert release(s, again)
+    b = acquire(s, "robot/3", "ben", ttl=30, reentrant=True)
+    assert b is not None and b.fence == a.fence + 1
+
+
+CLAIMER = """
+import sys, time
+from server.db import make_engine, session_factory
+from server.lease import acquire
+s = session_factory(make_engine(sys.argv[1]))
+s().close()  # connected before the start, so that every process reaches the update at once
+time.sleep(max(0.0, float(sys.argv[3]) - time.time()))
+lease = acquire(s, "robot/7", sys.argv[2], ttl=30, reentrant=True)
+print(lease.fence if lease else "refused", flush=True)
+"""
+
+
+def test_parallel_claims_from_separate_processes_give_exactly_one_lease(sessions):
+    """Each process stands for an API replica with its own connection pool; all claim one robot at
+    the same instant, several times over: one of them holds it each round, every other is refused."""
+    s, url = sessions
+    for round_ in range(2):
+        start = time.time() + 3.0
+        procs = [
+            subprocess.Popen(
+                [sys.executable, "-c", CLAIMER, url, f"replica-{round_}-{i}", str(start)],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for i in range(4)
+        ]
+        answers = []
+        for p in procs:
+            out, err = p.communicate(timeout=60)
+            assert p.returncode == 0, err
+            answers.append(out.strip())
+        held = [a for a in answers if a != "refused"]
+        assert len(held) == 1, f"round {round_}: {answers}"
+        assert int(held[0]) == round_ + 1  # one new holder per round, each fencing out the last
+        owner, _ = holder(s, "robot/7")
+        assert owner is not None and owner.startswith(f"replica-{round_}-")
+        with s() as db:
+            db.execute(text("UPDATE job_leases SET owner = NULL, expires_at = 0 WHERE name = 'robot/7'"))
+            db.commit()

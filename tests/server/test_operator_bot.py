@@ -1,11 +1,13 @@
-"""``hitl operator-bot --hand-back-when-held`` against a real service on 127.0.0.1."""
+"""``hitl operator-bot`` against a real service on 127.0.0.1: it hands back once the object is held, and
+gives up where the in-process operator's episodes stop."""
 
 import httpx
 import numpy as np
 
+from policy.lockstep import OVERTIME
 from server.auth import create_token
 from server.db import make_engine, migrate, session_factory
-from server.operator_bot import OperatorBot
+from server.operator_bot import OperatorBot, overtime
 from server.settings import RobotGroup, Settings
 from storage.segments import read_segment
 from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
@@ -30,6 +32,7 @@ def test_the_bot_hands_back_once_the_object_is_held(tmp_path):
         viewer = {"Authorization": f"Bearer {token}"}
         wait_for(lambda: httpx.get(api + "/robots/0", headers=viewer).json()["mode"] == "waiting")
         episode = httpx.get(api + "/robots/0", headers=viewer).json()["episode_id"]
+        assert httpx.get(api + "/robots/0/view", headers=viewer).json()["horizon"] == 150  # lift's
         bot = OperatorBot(svc.url, token, hands_back_when_held=True)
         try:
             bot.run(max_takeovers=1)
@@ -51,3 +54,12 @@ def test_the_bot_hands_back_once_the_object_is_held(tmp_path):
     assert segment.steps[-1]["command"]["gripper"] > 0
     assert 0.004 < obs[-1, OBJECT_Z] - obs[0, OBJECT_Z] < 0.02
     assert np.isfinite(obs).all()
+
+
+def test_the_bot_gives_up_where_the_in_process_operators_episodes_stop():
+    """At ``OVERTIME`` horizons of steps into the episode (holds included), as ``policy.lockstep`` stops
+    an episode; a view without a horizon (an older service) never makes it give up."""
+    assert not overtime({"step": OVERTIME * 150 - 1, "horizon": 150})
+    assert overtime({"step": OVERTIME * 150, "horizon": 150})
+    assert not overtime({"step": 10**6, "horizon": None}) and not overtime({"step": None, "horizon": 150})
+    assert not overtime({"step": 10**6})

@@ -103,6 +103,32 @@ def test_a_dead_pool_process_faults_its_robots_which_restart_on_a_new_one(tmp_pa
         assert restarted and all(p.pid != host for p in restarted)
 
 
+def test_a_dead_ray_actor_faults_its_robot_mid_takeover_which_restarts_on_the_restarted_actor(tmp_path, ray_local):
+    settings, sessions, h = _asking_fleet(tmp_path, worker="ray", ray_cpus_per_actor=0.5)
+    with Service(settings) as svc:
+        api = svc.url + "/api/v1"
+        _claim_robot_0(api, h)
+        worker = svc.app_state().fleet.robots[0].worker
+        pid = ray_local.get(worker.host.handle.pid.remote(), timeout=60)
+        assert pid != os.getpid()  # the robot's physics runs in its actor's process
+        os.kill(pid, signal.SIGKILL)
+        robot = wait_for(lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] == "faulted" and r)
+        assert "died" in robot["fault"] or "not open" in robot["fault"]
+        with sessions() as s:
+            rows = s.query(SegmentRecord).all()
+            assert rows and all(r.status == "closed" and r.ended_by == "worker-fault" for r in rows)
+        ends = [read_segment(resolve(settings.data_dir, r.path)).end for r in rows]
+        assert all(e["status"] == "closed" and e["ended_by"] == "worker-fault" for e in ends)  # the file says why
+        again = wait_for(
+            lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] in ("autonomous", "waiting") and r, 60
+        )
+        assert again["restarts"] >= 1
+        restarted = svc.app_state().fleet.robots[0].worker
+        assert ray_local.get(restarted.host.handle.pid.remote(), timeout=60) != pid  # Ray restarted the actor
+        outcomes = [e["outcome"] for e in httpx.get(api + "/episodes", headers=h).json()]
+        assert "faulted" in outcomes  # the interrupted episode is closed, not left open
+
+
 def _serve(config, port):
     return subprocess.Popen(
         [sys.executable, "-m", "hitl.cli", "serve", "--config", str(config), "--port", str(port)],

@@ -1,6 +1,7 @@
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
 from hitl.cli import main
 from server.auth import Principal, authenticate, create_token, revoke_token
@@ -103,3 +104,25 @@ def test_half_the_demo_fleet_is_in_distribution_and_each_problem_type_has_a_robo
     assert 2 * counts.get("lift-cube", 0) >= sum(counts.values())
     assert any(t in counts for t in ("lift-nut", "lift-hammer", "lift-hook"))  # distribution shift
     assert "cup-stack" in counts and "open-drawer" in counts  # partial observability, multimodality
+
+
+def test_the_ray_config_is_the_demo_fleet_on_ray_actors():
+    configs = Path(__file__).resolve().parents[2] / "configs"
+    demo, ray = Settings.load(configs / "demo.toml"), Settings.load(configs / "ray.toml")
+    assert ray.worker == "ray" and demo.worker != "ray" and ray.ray_address is None  # a local instance
+    same = {"worker", "robots_per_process", "ray_cpus_per_actor"}
+    assert ray.model_dump(exclude=same) == demo.model_dump(exclude=same)
+
+
+def test_ray_settings_are_validated():
+    with pytest.raises(ValidationError):
+        Settings(worker="ray", ray_cpus_per_actor=0)
+    with pytest.raises(ValidationError):
+        Settings(worker="ray", ray_namespace="")
+
+
+def test_the_ray_back_end_without_ray_installed_is_refused_at_load(monkeypatch):
+    monkeypatch.setattr("server.ray_cluster.ray_available", lambda: False)
+    with pytest.raises(ValidationError, match=r"pip install '.\[ray\]'"):
+        Settings(worker="ray")
+    assert Settings(worker="pool").worker == "pool"  # the others need nothing more

@@ -153,3 +153,74 @@ def test_a_pool_robot_whose_task_cannot_be_built_faults_alone():
 def _answer_hold(worker) -> np.ndarray:
     worker.request_reset(2)
     return _answer(worker).hold
+
+
+def _actor_pid(worker) -> int:
+    return worker.ray.get(worker.host.handle.pid.remote(), timeout=60)
+
+
+def test_ray_workers_keep_the_contract_and_share_an_actor(ray_local):
+    factory = WORKERS["ray"](Settings(worker="ray", robots_per_process=2, ray_cpus_per_actor=0.5))
+    a, b, c = factory(0, "lift-cube"), factory(1, "lift-cube"), factory(2, "lift-cube")
+    try:
+        assert a.host is b.host and c.host is not a.host  # two robots per actor
+        assert _actor_pid(a) != os.getpid() and _actor_pid(a) != _actor_pid(c)  # physics is out of process
+        assert a.prioritize(Priority.BACKGROUND) and not a.prioritize(Priority.CONTROL)  # an actor's calls keep order
+        _contract(a)  # ends with a's error and kill: b, on the same actor, carries on
+        b.request_reset(3)
+        c.request_reset(3)
+        wait_any([b, c], 120.0, min_ready=2)
+        fb, fc = b.poll(), c.poll()
+        assert fb is not None and fc is not None and fb.t == 0
+        np.testing.assert_allclose(fb.obs, fc.obs)  # same seed, same task: same frame
+        again = factory(0, "lift-cube")  # a robot restarted on the actor gets its own answers
+        assert again.host is a.host
+        again.request_reset(5)
+        assert _answer(again).t == 0
+    finally:
+        for w in (a, b, c):
+            w.close()
+
+
+def test_a_ray_actor_that_dies_faults_its_robots_and_ray_restarts_it(ray_local):
+    factory = WORKERS["ray"](Settings(worker="ray", robots_per_process=4, ray_cpus_per_actor=0.5))
+    a, b = factory(0, "lift-cube"), factory(1, "lift-cube")
+    try:
+        a.request_reset(1)
+        b.request_reset(1)
+        wait_any([a, b], 120.0, min_ready=2)
+        assert a.poll() is not None and b.poll() is not None
+        pid = _actor_pid(a)
+        a.request_step(np.zeros(10))  # in flight when the actor's process dies
+        os.kill(pid, 9)
+        with pytest.raises(WorkerFault, match="died"):
+            _answer(a, timeout=60)
+        b.request_reset(2)  # idle when it died: its next request finds the restarted actor without its task
+        with pytest.raises(WorkerFault, match="not open|died"):
+            _answer(b, timeout=60)
+        a.kill()
+        b.kill()
+        fresh = factory(0, "lift-cube")  # the fleet's restart: the same actor, restarted by Ray
+        fresh.request_reset(1)
+        assert _answer(fresh, timeout=120).t == 0
+        assert _actor_pid(fresh) != pid
+        fresh.close()
+    finally:
+        a.kill()
+        b.kill()
+
+
+def test_a_ray_robot_whose_task_cannot_be_built_faults_alone(ray_local):
+    factory = WORKERS["ray"](Settings(worker="ray", robots_per_process=4, ray_cpus_per_actor=0.5))
+    bad, good = factory(0, "no-such-task"), factory(1, "lift-cube")
+    try:
+        bad.request_reset(1)
+        with pytest.raises(WorkerFault, match="no-such-task"):
+            _answer(bad, timeout=60)
+        good.request_reset(1)
+        assert _answer(good).t == 0
+        good.request_step(_answer_hold(good))
+        assert _answer(good).t == 1
+    finally:
+        for w in (bad, good):
+            w.close()

@@ -1,10 +1,13 @@
 import numpy as np
 import pytest
 
+from sim.experts import RETRY_AFTER, STUCK_STEPS
+from sim.frame import RobotFrame
 from sim.registry import TASKS, make_expert, make_task
 from sim.rollout import run_expert_episode
 from sim.spaces import TeleopCommand
 from sim.tasks.cup_stack import OCCLUSION_RADIUS
+from sim.view import OperatorView
 
 TASK_IDS = list(TASKS)
 
@@ -217,3 +220,46 @@ def test_lift_records_where_the_gripper_first_closed(task_cache):
     assert task.episode_info()["first_close_to_grasp_m"] is None
     task.step(task.teleop(TeleopCommand((0, 0, 0), (0, 0, 0), 1.0)).action)
     assert task.episode_info()["first_close_step"] == 0
+
+
+def _follow(view: OperatorView, command: TeleopCommand, gripper: float) -> OperatorView:
+    """The view after a robot that moves exactly as commanded, with the finger gap given, in a scene where
+    nothing else moves (the object is never lifted)."""
+    pos, rot = view.ee_pose()
+    return OperatorView("lift-cube", pos + np.asarray(command.delta_pos), rot, gripper, view.privileged())
+
+
+def test_the_simulated_operator_goes_back_for_an_object_its_lift_did_not_get(task_cache):
+    """A plan that runs to its end without the episode succeeding (the gripper closed on nothing and came
+    up empty) leaves a demonstrating expert done; the operator's expert plans again from the top."""
+    task = task_cache("lift-cube")
+    task.reset(3)
+    start = OperatorView.from_frame("lift-cube", RobotFrame.from_task(task))
+    for retry in (False, True):
+        expert, view = make_expert("lift-cube", retry=retry), start
+        expert.reset(view, np.random.default_rng(0))
+        for _ in range(1000):
+            if expert.done:
+                break
+            cmd = expert.act(view)
+            view = _follow(view, cmd, 0.08 if cmd.gripper < 0 else 0.0)  # closes fully: nothing between the fingers
+        assert expert.done and expert.retries == 0
+        for _ in range(RETRY_AFTER + 1):
+            cmd = expert.act(view)
+        assert expert.done != retry and expert.retries == int(retry)
+        if retry:
+            assert expert.phase == "approach" and cmd.gripper < 0  # opens, and goes back over the object
+
+
+def test_the_simulated_operator_tries_again_when_its_gripper_is_stuck(task_cache):
+    """On a view where nothing moves (the fingers pushing against the object), the operator's expert
+    re-plans after ``STUCK_STEPS``; a demonstrating expert keeps pushing until the phase's step limit."""
+    task = task_cache("lift-cube")
+    task.reset(3)
+    view = OperatorView.from_frame("lift-cube", RobotFrame.from_task(task))
+    for retry in (False, True):
+        expert = make_expert("lift-cube", retry=retry)
+        expert.reset(view, np.random.default_rng(0))
+        for _ in range(STUCK_STEPS + 1):
+            expert.act(view)
+        assert expert.retries == int(retry) and expert.phase == "approach"
