@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	lift-baselines-hitl-docs resume-docs nights-docs asking-dev-docs \
-	operator-dev-docs clean
+	operator-dev-docs fleet-backends-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -213,6 +213,12 @@ asking-dev-docs: install
 	$(BIN)/hitl assist --policy policies/lift-cube --task lift-cube --driver spread-stall --mode continuous --cooldown 10 \
 		--watchdog 0.8 --hand-back-when-held --episodes 30 --seed 8000 --envs 2 --threads 2 --json --quiet \
 		> docs/results/nights/dev/lift-cube-asking.json
+
+# docs/benchmarks/serving.md, "Every worker back end side by side", and docs/architecture.md: the fleet on the
+# process, pool and ray back ends in one run, 4 and 16 robots (about 6 minutes on 2 cores)
+fleet-backends-docs: install
+	$(BIN)/hitl bench fleet --robots 4,16 --seconds 15 --worker process pool ray --quiet \
+		> docs/results/serving/fleet-backends.json
 
 # docs/benchmarks/nights.md, "The simulated operator's failed grasps": the bundled lift policy on the shifted lift
 # tasks with the fleet's asking and the simulated operator as it drives now (it tries again when a grasp fails),
