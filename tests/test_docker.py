@@ -121,3 +121,13 @@ def test_the_services_share_one_store_and_the_service_joins_the_cluster():
     assert services["service"]["environment"]["JOIN_RAY_CLUSTER"] == f"ray-head:{port}"
     assert Settings.load(ROOT / "configs" / "compose.toml").ray_address == "auto"
     assert "JOIN_RAY_CLUSTER" in (ROOT / "docker" / "entrypoint.sh").read_text()
+
+
+def test_every_ray_node_authenticates_with_one_token_the_user_sets():
+    services = _compose()["services"]
+    for name in ("ray-head", "ray-worker", "ray-gpu", "service"):
+        env = services[name]["environment"]
+        assert env["RAY_AUTH_MODE"] == "token", name
+        token = env["RAY_AUTH_TOKEN"]
+        assert token.startswith("${RAY_AUTH_TOKEN:?"), f"{name}: the token comes from the user, required"
+        assert "$" not in token[2:-1], f"{name}: a literal $ in the message would break compose's interpolation"
