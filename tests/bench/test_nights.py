@@ -123,3 +123,22 @@ def test_job_errors_name_paths_relative_to_the_data_root(tmp_path, monkeypatch):
     monkeypatch.setenv("HITL_DATA_ROOT", str(tmp_path))
     assert _portable_text(f"not in {tmp_path}/data/demos/x (e.g. a.mcap)") == "not in data/demos/x (e.g. a.mcap)"
     assert _portable_text(None) is None
+
+
+def test_a_night_whose_job_does_not_end_stops_the_run_and_the_report_says_so(quick_fleet):
+    """A night's job still running at ``night_timeout_s`` stops the run with what it measured: one day,
+    the night marked timed out, and the report not complete."""
+    root, policy = quick_fleet
+    plan = NightsPlan(
+        config=quick_config(root, policy),
+        days=3,
+        day_minutes=3.0,
+        day_episodes=1,
+        night_timeout_s=1.0,
+        data_dir=root / "short-night",
+        progress=False,
+    )
+    report = run_nights(plan)
+    assert report["complete"] is False
+    assert len(report["days"]) == 1 and len(report["nights"]) == 1
+    assert report["nights"][0]["timed_out"] is True and report["nights"][0]["exit_code"] is None
