@@ -224,12 +224,17 @@ def _sqlite_dir(url: str) -> None:
 def make_engine(url: str) -> Engine:
     _sqlite_dir(url)
     if url.startswith("sqlite:///"):
-        engine = create_engine(url, connect_args={"check_same_thread": False})
+        # a writer waits up to 30 s for another process's write (the service, a job, a CLI command)
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30.0})
 
         @event.listens_for(engine, "connect")
         def _wal(dbapi_conn, _record) -> None:
             cur = dbapi_conn.cursor()
-            cur.execute("PRAGMA journal_mode=WAL")
+            # WAL is a property of the file, kept once set; setting it takes a lock that another process
+            # opening the database at the same instant may hold ("database is locked", without waiting),
+            # so it is set only where the file is not in WAL mode yet
+            if str(cur.execute("PRAGMA journal_mode").fetchone()[0]).lower() != "wal":
+                cur.execute("PRAGMA journal_mode=WAL")
             cur.execute("PRAGMA synchronous=NORMAL")
             cur.execute("PRAGMA foreign_keys=ON")
             cur.close()
