@@ -3,6 +3,8 @@ URL) and Alembic migrations applied at start."""
 
 from __future__ import annotations
 
+import sqlite3
+import time
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -221,6 +223,22 @@ def _sqlite_dir(url: str) -> None:
         Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
 
 
+def _ensure_wal(cur, attempts: int = 100) -> None:
+    """Puts the SQLite file in WAL mode, a property of the file kept once set. Setting it takes a lock
+    without waiting for it, so processes opening a new database at the same instant may find it taken
+    ("database is locked"): then one of them is converting the file, and the others wait for that."""
+    for _ in range(attempts):
+        if str(cur.execute("PRAGMA journal_mode").fetchone()[0]).lower() == "wal":
+            return
+        try:
+            cur.execute("PRAGMA journal_mode=WAL")
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc):
+                raise
+            time.sleep(0.05)
+    raise sqlite3.OperationalError("database is locked: could not put it in WAL mode")
+
+
 def make_engine(url: str) -> Engine:
     _sqlite_dir(url)
     if url.startswith("sqlite:///"):
@@ -230,11 +248,7 @@ def make_engine(url: str) -> Engine:
         @event.listens_for(engine, "connect")
         def _wal(dbapi_conn, _record) -> None:
             cur = dbapi_conn.cursor()
-            # WAL is a property of the file, kept once set; setting it takes a lock that another process
-            # opening the database at the same instant may hold ("database is locked", without waiting),
-            # so it is set only where the file is not in WAL mode yet
-            if str(cur.execute("PRAGMA journal_mode").fetchone()[0]).lower() != "wal":
-                cur.execute("PRAGMA journal_mode=WAL")
+            _ensure_wal(cur)
             cur.execute("PRAGMA synchronous=NORMAL")
             cur.execute("PRAGMA foreign_keys=ON")
             cur.close()
@@ -250,6 +264,10 @@ def migrate(url: str) -> None:
     cfg.set_main_option("script_location", str(MIGRATIONS))
     cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
     command.upgrade(cfg, "head")
+    if url.startswith("sqlite:///"):  # in WAL mode from its creation, before several processes open it
+        engine = make_engine(url)
+        engine.connect().close()
+        engine.dispose()
 
 
 def session_factory(engine: Engine) -> sessionmaker:

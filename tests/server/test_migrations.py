@@ -95,3 +95,36 @@ def test_the_schema_at_head_is_what_the_models_declare_and_the_chain_round_trips
             assert compare_metadata(MigrationContext.configure(conn), Base.metadata) == []
     finally:
         engine.dispose()
+
+
+OPENER = """
+import sys, time
+from sqlalchemy import text
+from server.db import make_engine
+engine = make_engine(sys.argv[1])
+time.sleep(max(0.0, float(sys.argv[2]) - time.time()))
+with engine.connect() as conn:
+    conn.execute(text("SELECT 1"))
+"""
+
+
+def test_processes_opening_a_new_sqlite_database_at_the_same_instant_all_connect(tmp_path):
+    """Each connection puts the file in WAL mode if it is not yet; the one that sets it takes a lock the
+    others find taken at once ("database is locked", no waiting): they wait for it instead."""
+    import subprocess
+    import sys
+    import time
+
+    url = f"sqlite:///{tmp_path / 'fresh.db'}"
+    start = time.time() + 3.0
+    procs = [
+        subprocess.Popen([sys.executable, "-c", OPENER, url, str(start)], stderr=subprocess.PIPE, text=True)
+        for _ in range(6)
+    ]
+    for p in procs:
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 0, err
+    engine = create_engine(url)
+    with engine.connect() as conn:
+        assert conn.execute(text("PRAGMA journal_mode")).scalar() == "wal"
+    engine.dispose()
