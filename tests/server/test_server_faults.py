@@ -52,6 +52,15 @@ def _claim_robot_0(api, h) -> None:
     assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
 
 
+def _assert_segments_closed_by_worker_fault(settings, sessions) -> None:
+    """Every takeover segment is closed with ``worker-fault``, in its row and in its file's end message."""
+    with sessions() as s:
+        rows = s.query(SegmentRecord).all()
+        assert rows and all(r.status == "closed" and r.ended_by == "worker-fault" for r in rows)
+    ends = [read_segment(resolve(settings.data_dir, r.path)).end for r in rows]
+    assert all(e["status"] == "closed" and e["ended_by"] == "worker-fault" for e in ends)  # the file says why
+
+
 def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
     settings, sessions, h = _asking_fleet(tmp_path)
     with Service(settings) as svc:
@@ -61,11 +70,7 @@ def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
         os.kill(pid, signal.SIGKILL)
         robot = wait_for(lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] == "faulted" and r)
         assert "exited" in robot["fault"] or "broke" in robot["fault"]
-        with sessions() as s:
-            rows = s.query(SegmentRecord).all()
-            assert rows and all(r.status == "closed" and r.ended_by == "worker-fault" for r in rows)
-        ends = [read_segment(resolve(settings.data_dir, r.path)).end for r in rows]
-        assert all(e["status"] == "closed" and e["ended_by"] == "worker-fault" for e in ends)  # the file says why
+        _assert_segments_closed_by_worker_fault(settings, sessions)
         # restarted with backoff, then the policy runs (and, with this threshold, asks) again
         again = wait_for(
             lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] in ("autonomous", "waiting") and r, 30
@@ -114,11 +119,7 @@ def test_a_dead_ray_actor_faults_its_robot_mid_takeover_which_restarts_on_the_re
         os.kill(pid, signal.SIGKILL)
         robot = wait_for(lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] == "faulted" and r)
         assert "died" in robot["fault"] or "not open" in robot["fault"]
-        with sessions() as s:
-            rows = s.query(SegmentRecord).all()
-            assert rows and all(r.status == "closed" and r.ended_by == "worker-fault" for r in rows)
-        ends = [read_segment(resolve(settings.data_dir, r.path)).end for r in rows]
-        assert all(e["status"] == "closed" and e["ended_by"] == "worker-fault" for e in ends)  # the file says why
+        _assert_segments_closed_by_worker_fault(settings, sessions)
         again = wait_for(
             lambda: (r := httpx.get(api + "/robots/0", headers=h).json())["mode"] in ("autonomous", "waiting") and r, 60
         )
