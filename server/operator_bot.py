@@ -3,7 +3,7 @@ drives it with the task's scripted expert from the operator view, and hands back
 
 It drives as the in-process simulated operator does (``policy.assisted.ExpertOperator``): the expert
 tries again when a grasp fails (``Expert.retry``), and it gives up, handing back, once the episode
-has run ``OVERTIME`` horizons of steps, where the in-process episodes stop (``policy.lockstep``).
+has run ``OVERTIME`` horizons of its clock, where the in-process episodes stop (``policy.lockstep``).
 
 It uses only the public REST API, so it is also an example client for users.
 """
@@ -27,11 +27,16 @@ LIMITS = TeleopLimits()
 
 
 def overtime(view: dict) -> bool:
-    """Whether the episode has run ``OVERTIME`` horizons of steps (holds included): there the simulated
-    operator gives up and hands back, as the in-process one's episodes stop (``policy.lockstep``), and
-    the episode, past its horizon, ends as a timeout."""
-    step, horizon = view.get("step"), view.get("horizon")
-    return isinstance(step, int) and isinstance(horizon, int) and horizon > 0 and step >= OVERTIME * horizon
+    """Whether the episode's clock has run ``OVERTIME`` horizons: there the simulated operator gives up
+    and hands back, as the in-process one's episodes stop (``policy.lockstep``), and the episode, past
+    its horizon, ends as a timeout at the hand-back.
+
+    The clock, not the steps: in the fleet a request waits in the queue while the one operator drives
+    another robot, and those holds (which the in-process operator, answering at once, never has) do not
+    use up the episode. Counting them gave up, without a command, on every robot that had waited 30 s
+    for its turn, and such a robot, asking again, was given up on again until its clock ran out."""
+    clock, horizon = view.get("clock"), view.get("horizon")
+    return isinstance(clock, int) and isinstance(horizon, int) and horizon > 0 and clock >= OVERTIME * horizon
 
 
 class TakeoverOver(Exception):
@@ -107,7 +112,7 @@ class OperatorBot:
                     raw = self._get(f"/robots/{robot_id}/view")
                     view = self._view(robot_id, raw)
                     if overtime(raw):
-                        log.info("robot %d: %d steps into its episode, giving up", robot_id, raw["step"])
+                        log.info("robot %d: clock %d of its episode, giving up", robot_id, raw["clock"])
                         self.client.post(f"{self.api}/robots/{robot_id}/release")
                         break
                     if self.hands_back_when_held and not held_at_start and expert.holding(view):

@@ -57,9 +57,11 @@ def test_the_bot_hands_back_once_the_object_is_held(tmp_path):
 
 
 def test_the_bot_gives_up_where_the_in_process_operators_episodes_stop():
-    """At ``OVERTIME`` horizons of steps into the episode (holds included), as ``policy.lockstep`` stops
-    an episode; a view without a horizon (an older service) never makes it give up."""
-    assert not overtime({"step": OVERTIME * 150 - 1, "horizon": 150})
-    assert overtime({"step": OVERTIME * 150, "horizon": 150})
-    assert not overtime({"step": 10**6, "horizon": None}) and not overtime({"step": None, "horizon": 150})
-    assert not overtime({"step": 10**6})
+    """At ``OVERTIME`` horizons of the episode's clock, as ``policy.lockstep`` stops an episode; the
+    steps a request waited in the queue (holds: ``step`` counts them, ``clock`` does not) never make it
+    give up; a view without a horizon or a clock (an older service) never does either."""
+    assert not overtime({"clock": OVERTIME * 150 - 1, "horizon": 150})
+    assert overtime({"clock": OVERTIME * 150, "horizon": 150})
+    assert not overtime({"step": 10**6, "clock": 40, "horizon": 150})  # a long wait for the operator
+    assert not overtime({"clock": 10**6, "horizon": None}) and not overtime({"clock": None, "horizon": 150})
+    assert not overtime({"clock": 10**6}) and not overtime({"step": 10**6, "horizon": 150})
