@@ -192,6 +192,7 @@ class ControlLoop:
                 robot.slot.controller.ask(robot.id, robot.frame.hold)
                 robot.mode = "waiting"
         for r in self.robots.values():
+            self._apply_handovers(r)  # claims and releases since the last tick (``server.handovers``)
             if r.segment is not None:  # nothing older than a second is only in memory
                 r.segment.maybe_flush()
             if r.worker is not None:

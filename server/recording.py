@@ -43,6 +43,8 @@ class Recorder:
         self.sessions = sessions
         self.data_dir = Path(data_dir).resolve()
         self.record_episodes = record_episodes
+        self._totals: dict | None = None  # ``totals()`` until the next episode row ends
+        self._ended = 0  # episode rows ended by this recorder: a ``totals()`` computed across one is not kept
 
     # -- episode rows ---------------------------------------------------------------------------------
     def open_episode(self, robot: Robot) -> int:
@@ -64,9 +66,16 @@ class Recorder:
                 )
                 row.assisted_steps, row.assistance_events = robot.assisted_steps, robot.events
                 s.commit()
+                self._ended += 1
+                self._totals = None
 
     def totals(self) -> dict:
-        """Aggregates over the episodes that ended on their own (one query, no rows loaded)."""
+        """Aggregates over the episodes that ended on their own (one query, no rows loaded). The fleet is
+        the only writer of its episode rows, so the answer is kept until its next episode ends: a
+        monitoring client polling the fleet's metrics costs no query between episodes."""
+        if (kept := self._totals) is not None:
+            return dict(kept)
+        ended = self._ended
         with self.sessions() as s:
             n, success, assisted, events = s.execute(
                 select(
@@ -76,7 +85,10 @@ class Recorder:
                     func.coalesce(func.sum(EpisodeRecord.assistance_events), 0),
                 ).where(EpisodeRecord.outcome.in_(FINISHED))
             ).one()
-        return {"episodes": int(n), "successes": int(success), "assisted_steps": int(assisted), "events": int(events)}
+        out = {"episodes": int(n), "successes": int(success), "assisted_steps": int(assisted), "events": int(events)}
+        if ended == self._ended:  # no episode ended while it was computed
+            self._totals = out
+        return dict(out)
 
     # -- whole episodes ---------------------------------------------------------------------------------
     def frame_arrived(self, robot: Robot, frame: RobotFrame) -> None:

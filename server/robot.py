@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, fields, replace
 
 from policy.uncertainty import UncertaintyResult
 from server.commands import CommandMailbox
+from server.handovers import HandoverMailbox
 from server.slots import PolicySlot
 from server.workers import RobotWorker
 from sim.frame import RobotFrame
@@ -93,6 +94,7 @@ class Robot:
     recorder: EpisodeWriter | None = None  # whole-episode recording (settings.record_episodes)
     pending_step: tuple | None = None  # the step sent, written once its outcome arrives
     view: RobotView | None = None  # what readers see (``Fleet._publish``)
+    handovers: HandoverMailbox = field(default_factory=HandoverMailbox)  # claims, releases for the next tick
 
     def publish(self) -> None:
         """A consistent copy of what the API shows, so readers never wait for a tick in progress."""

@@ -62,8 +62,9 @@ _HOLDER = errors(
 
 
 @router.post("/robots/{robot_id}/claim", response_model=AssistanceRequestOut, responses=_HOLDER)
-def claim(robot_id: Id, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
-    """Take control of a robot that asked for help: a lease, renewed by heartbeats."""
+async def claim(robot_id: Id, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
+    """Take control of a robot that asked for help: a lease, renewed by heartbeats. The robot is under
+    your control from the fleet's next tick; commands sent before it are applied at that tick."""
     return _out(fleet.claim(robot_id, who.name))
 
 
@@ -73,8 +74,8 @@ async def heartbeat(robot_id: Id, fleet: FleetDep, who: Operator) -> AssistanceR
 
 
 @router.post("/robots/{robot_id}/release", response_model=RobotSummary, responses=_HOLDER)
-def release(robot_id: Id, fleet: FleetDep, who: Operator) -> RobotSummary:
-    """Hand the robot back to its policy."""
+async def release(robot_id: Id, fleet: FleetDep, who: Operator) -> RobotSummary:
+    """Hand the robot back to its policy (at the fleet's next tick; it is shown handed back at once)."""
     fleet.release(robot_id, who.name)
     return summary(fleet.view(robot_id))
 

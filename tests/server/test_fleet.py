@@ -1,12 +1,14 @@
 """The fleet runtime on in-process workers and a kinematic stand-in task: fast, no uvicorn, no sleeps.
 Ticks are driven by hand, so every assertion is about one known sequence of ticks."""
 
+from datetime import UTC, datetime
+
 import numpy as np
 import pytest
 
 from policy.assisted import AssistConfig, run_assisted
 from policy.evaluate import rollout_policy
-from server.db import PolicyVersion, make_engine, migrate, session_factory
+from server.db import EpisodeRecord, PolicyVersion, make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.fleet import Fleet
 from server.settings import RobotGroup, Settings
@@ -151,6 +153,17 @@ def test_metrics_aggregate_finished_episodes(tmp_path):
         fleet.tick()
     m = fleet.metrics()
     assert m["episodes"] >= 4 and m["success_rate"] == 0.0 and m["robots_by_mode"]["autonomous"] == 2
+    # the totals are kept between episodes (no query per metrics request), and renewed at each episode's end
+    with fleet.recorder.sessions() as s:  # a row the fleet did not write: not seen until the fleet's next episode ends
+        s.add(EpisodeRecord(robot_id=9, task="lift-cube", seed=0, outcome="success", steps=1, assisted_steps=0,
+                            assistance_events=0, started_at=datetime.now(UTC)))  # fmt: skip
+        s.commit()
+    assert fleet.metrics()["episodes"] == m["episodes"]
+    fleet.recorder.totals()["episodes"] = -1  # a copy: the kept totals are not the caller's to change
+    for _ in range(4):
+        fleet.tick()
+    after = fleet.metrics()
+    assert after["episodes"] >= m["episodes"] + 2 and after["success_rate"] > 0.0  # renewed, with that row
     fleet.stop()
 
 
@@ -380,3 +393,71 @@ def test_freeze_idle_steps_a_waiting_or_idle_teleop_robot_only_on_its_operators_
     fleet.tick()
     assert len(workers[0].actions) == 2 and fleet.view(0).assisted_steps == 1
     fleet.stop()
+
+
+def test_claims_and_releases_never_wait_for_a_tick_in_progress(tmp_path):
+    """A tick holds the fleet lock for its whole batch; a claim and a release are decided by the queue
+    at once, shown at once, and applied by the loop at its next tick (``server.handovers``)."""
+    import threading
+    import time
+
+    fleet, workers = _fleet(tmp_path, trigger_mode="continuous", auto_return_steps=1000)
+    fleet.tick()  # threshold -1: the robot asks
+    in_tick, done = threading.Event(), threading.Event()
+
+    def long_tick():
+        with fleet.lock:
+            in_tick.set()
+            done.wait(10)
+
+    t = threading.Thread(target=long_tick)
+    t.start()
+    assert in_tick.wait(5)
+    try:
+        t0 = time.monotonic()
+        fleet.claim(0, "op")  # would wait 10 s for the lock held by the "tick"
+        assert time.monotonic() - t0 < 2.0
+        assert fleet.view(0).mode == "teleop" and fleet.queue.get(0).holder == "op"
+        assert fleet.command(0, "op", UP) == 1  # the claimant's command waits for the tick that applies the claim
+        with pytest.raises(ServiceError) as other:
+            fleet.claim(0, "bob")
+        assert other.value.status == 409
+        assert not done.is_set()
+    finally:
+        done.set()
+        t.join()
+    before = len(workers[0].actions)
+    fleet.tick()  # applies the claim, then steps the robot on the command
+    robot = fleet.view(0)
+    assert robot.mode == "teleop" and robot.assisted_steps == 1 and len(workers[0].actions) == before + 1
+    [segment] = _segments(fleet)
+    assert segment.operator == "op" and segment.status == "open"
+
+    with fleet.lock:  # a release during a tick: shown at once, the operator's commands refused from then on
+        fleet.release(0, "op")
+        assert fleet.view(0).mode == "autonomous"
+        with pytest.raises(ServiceError) as refused:
+            fleet.command(0, "op", UP)
+        assert refused.value.status == 409
+    fleet.tick()
+    assert fleet.view(0).mode in ("autonomous", "waiting")  # handed back (and, at threshold -1, asks again)
+    req = fleet.queue.get(0)
+    assert req is None or req.holder is None
+    [segment] = _segments(fleet)
+    assert segment.ended_by == "hand-back" and segment.steps == 1
+
+
+def test_a_claim_whose_request_ends_before_the_next_tick_changes_nothing(tmp_path):
+    fleet, _ = _fleet(tmp_path, lease_seconds=0.05, trigger_mode="continuous")
+    fleet.tick()
+    fleet.claim(0, "op")
+    import time
+
+    time.sleep(0.1)  # the lease runs out before the loop applies the claim
+    fleet.tick()
+    robot = fleet.view(0)
+    assert robot.mode == "waiting" and fleet.queue.get(0).holder is None
+    assert _segments(fleet) == []  # no takeover began
+    with pytest.raises(ServiceError) as gone:
+        fleet.command(0, "op", UP)
+    assert gone.value.status == 409

@@ -297,4 +297,5 @@ def test_the_operator_bot_survives_an_episode_that_ends_mid_takeover(service):
     segs = httpx.get(api + "/segments?operator=bot-reset", headers=_h(service, "viewer")).json()
     first = min(segs, key=lambda s: s["id"])
     assert first["ended_by"] == "reset" and first["robot_id"] == resets[0]
-    assert all(s["ended_by"] in ("hand-back", "reset") for s in segs)
+    ends = [(s["id"], s["robot_id"], s["ended_by"], s["steps"]) for s in segs]
+    assert all(s["ended_by"] in ("hand-back", "reset") for s in segs), ends
