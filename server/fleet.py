@@ -116,6 +116,10 @@ class Fleet(ControlLoop, OperatorMethods):
                 if robot.worker is not None:
                     robot.worker.join(timeout=5)
 
+    @property
+    def data_dir(self) -> Path:
+        return self.settings.data_dir
+
     # -- policy versions (``server.policy_swap``) ----------------------------------------------------------
     def register_policy(self, path: Path, task: str | None = None, parent: int | None = None) -> int:
         """Adds a policy folder as a ``candidate`` version (idempotent by path); returns its id."""

@@ -20,7 +20,7 @@ import time
 from dataclasses import replace
 
 from policy.controller import Mode
-from server.assistance import AssistanceQueue
+from server.assistance import AssistanceQueue, AssistanceRequest
 from server.errors import ServiceError
 from server.handovers import Handover
 from server.recording import Recorder
@@ -52,6 +52,10 @@ class OperatorMethods:
 
     def views(self) -> list[RobotView]:
         return [self.view(i) for i in sorted(self.robots)]
+
+    def requests(self) -> list[AssistanceRequest]:
+        """Open assistance requests, unclaimed first, by priority (the queue's own lock)."""
+        return self.queue.pending()
 
     # -- service methods (the API calls these) ---------------------------------------------------------------
     def robot(self, robot_id: int) -> Robot:

@@ -15,12 +15,12 @@ from pydantic import ValidationError
 
 from server.api.schemas import TeleopCommandIn
 from server.errors import ServiceError
-from server.fleet import Fleet
+from server.port import FleetPort
 from web.identity import Identity
 
 
 class ConsoleActions:
-    def __init__(self, fleet: Fleet, identity: Identity) -> None:
+    def __init__(self, fleet: FleetPort, identity: Identity) -> None:
         self.fleet, self.identity = fleet, identity
 
     @property

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import viser
 
-from server.fleet import Fleet
+from server.port import FleetPort
 from web.identity import HEADER, Identity, IdentitySigner
 from web.operator_panel import OperatorPanel
 from web.panels import FleetSnapshot
@@ -40,7 +40,7 @@ class ConsoleStats:
 
 class Console:
     def __init__(
-        self, fleet: Fleet, hz: float, signer: IdentitySigner | None = None, models: SceneModels | None = None
+        self, fleet: FleetPort, hz: float, signer: IdentitySigner | None = None, models: SceneModels | None = None
     ):
         self.fleet = fleet
         self.hz = hz if hz > 0 else DEFAULT_HZ
@@ -149,7 +149,7 @@ class Console:
     def snapshot(self) -> FleetSnapshot:
         now = time.monotonic()  # before the reads: a claim made after ``now`` may be missing from them
         return FleetSnapshot(
-            {v.id: v for v in self.fleet.views()}, tuple(self.fleet.queue.pending()), now, self.fleet.lineages()
+            {v.id: v for v in self.fleet.views()}, tuple(self.fleet.requests()), now, self.fleet.lineages()
         )
 
     def _run(self) -> None:

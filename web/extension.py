@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from fastapi import FastAPI
 
-from server.fleet import Fleet
+from server.port import FleetPort
 from web import pages
 from web.console import Console
 from web.sessions import ConsoleSessions
@@ -18,7 +18,7 @@ class ConsoleExtension:
 
     router = pages.router
 
-    def start(self, app: FastAPI, fleet: Fleet) -> None:
+    def start(self, app: FastAPI, fleet: FleetPort) -> None:
         settings = app.state.settings
         app.state.console_sessions = ConsoleSessions()
         app.state.console = None

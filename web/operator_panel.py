@@ -17,7 +17,7 @@ import numpy as np
 import viser
 
 from server.errors import ServiceError
-from server.fleet import Fleet
+from server.port import FleetPort
 from sim.registry import make_task
 from sim.spaces import TeleopLimits
 from web.actions import ConsoleActions
@@ -57,7 +57,7 @@ class OperatorPanel:
         self,
         client: viser.ClientHandle,
         identity: Identity,
-        fleet: Fleet,
+        fleet: FleetPort,
         models: SceneModels,
         builds: Executor,
         hz: float,

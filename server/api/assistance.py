@@ -24,7 +24,7 @@ from server.api.ws_messages import (
 )
 from server.assistance import AssistanceRequest
 from server.errors import ServiceError
-from server.fleet import Fleet
+from server.port import FleetPort
 
 router = APIRouter(tags=["assistance"])
 
@@ -49,7 +49,7 @@ async def queue(fleet: FleetDep, _: Viewer) -> list[AssistanceRequestOut]:
     """Open requests, unclaimed first, by priority: how far the score is over its threshold (as a fraction
     of the score, 0 to 1) plus one unit per 10 s waited, so no robot waits long whatever its signal's scale
     (``server.assistance``)."""
-    return [_out(r) for r in fleet.queue.pending()]
+    return [_out(r) for r in fleet.requests()]
 
 
 _HOLDER = errors(
@@ -114,14 +114,14 @@ async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
     need the operator role (a 403 reply otherwise). A refused message changes nothing and the socket
     stays open; an unknown robot gets a 404 error message and the close code 4404.
     """
-    fleet: Fleet = websocket.app.state.fleet
+    fleet: FleetPort = websocket.app.state.fleet
     principal = await websocket_principal(websocket, "viewer")
     if principal is None:
         await websocket.send_denial_response(JSONResponse({"detail": "missing or invalid API token"}, status_code=401))
         return
     await websocket.accept()
     try:
-        fleet.robot(robot_id)
+        fleet.view(robot_id)
     except ServiceError as exc:
         await _send(websocket, TeleopErrorMessage(error=str(exc), status=exc.status))
         await websocket.close(code=CLOSE_UNKNOWN_ROBOT)

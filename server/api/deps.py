@@ -14,12 +14,12 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import sessionmaker
 
 from server.auth import Principal, TokenCache
-from server.fleet import Fleet
+from server.port import FleetPort
 
 _bearer = HTTPBearer(auto_error=False)
 
 
-async def get_fleet(request: Request) -> Fleet:
+async def get_fleet(request: Request) -> FleetPort:
     return request.app.state.fleet
 
 
@@ -27,7 +27,7 @@ def get_sessions(request: Request) -> sessionmaker:
     return request.app.state.sessions
 
 
-FleetDep = Annotated[Fleet, Depends(get_fleet)]
+FleetDep = Annotated[FleetPort, Depends(get_fleet)]
 SessionsDep = Annotated[sessionmaker, Depends(get_sessions)]
 
 

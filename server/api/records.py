@@ -76,7 +76,7 @@ def download_segment(segment_id: Id, sessions: SessionsDep, fleet: FleetDep, _: 
         raise HTTPException(404, f"no segment {segment_id}")
     if row.status == "open":
         raise HTTPException(409, f"segment {segment_id} is still being recorded")
-    path = resolve(fleet.settings.data_dir, row.path)
+    path = resolve(fleet.data_dir, row.path)
     if not path.is_file():
         raise HTTPException(410, f"segment {segment_id}'s file is gone")
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)

@@ -11,7 +11,7 @@ from fastapi import APIRouter
 from server.api.deps import Admin, FleetDep, Viewer
 from server.api.responses import AUTH, errors
 from server.api.schemas import Id, OperatorView, PoseOut, RobotDetail, RobotSummary, UncertaintyOut
-from server.fleet import Fleet
+from server.port import FleetPort
 from server.robot import RobotView
 
 router = APIRouter(prefix="/robots", tags=["robots"])
@@ -75,7 +75,7 @@ def detail(robot: RobotView) -> RobotDetail:
     )
 
 
-def _get(fleet: Fleet, robot_id: int) -> RobotView:
+def _get(fleet: FleetPort, robot_id: int) -> RobotView:
     return fleet.view(robot_id)
 
 

@@ -55,7 +55,7 @@ def prometheus(fleet: FleetDep, _: Viewer) -> Response:
     modes = Gauge("hitl_robots", "robots by mode", ["mode"], registry=registry)
     for mode, n in m["robots_by_mode"].items():
         modes.labels(mode).set(n)
-    Gauge("hitl_queue_length", "open assistance requests", registry=registry).set(len(fleet.queue.pending()))
+    Gauge("hitl_queue_length", "open assistance requests", registry=registry).set(len(fleet.requests()))
     for name, doc, key in (
         ("hitl_queue_oldest_unclaimed_seconds", "wait of the oldest unclaimed request", "queue_oldest_unclaimed_s"),
         ("hitl_queue_wait_max_seconds", "longest wait from request to claim", "queue_wait_max_s"),

@@ -1,0 +1,73 @@
+"""``FleetPort``: all that the REST API and the operator console use of the fleet runtime.
+
+The API's routers (``server.api``) and the console (``web``) reach the fleet only through these
+members, typed here, never through its robots, queue, lock or settings. ``server.fleet.Fleet``
+implements it in the process that runs the control loop. A runtime in another process, or a Ray
+actor, implements it behind a client, and the API and the console run unchanged against it:
+every call below is already one that never waits for a tick in progress, or one that an admin makes
+rarely (pause, resume, reset, policies). ``tests/server/test_port.py`` checks that nothing in
+``server.api`` or ``web`` reaches past it.
+
+What crosses it today is in-process: ``RobotView`` holds the robot's policy slot and numpy arrays,
+and a runtime elsewhere needs a serializable form of it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Protocol
+
+from server import registry
+from server.assistance import AssistanceRequest
+from server.robot import RobotView
+from sim.spaces import TeleopCommand
+
+
+class FleetPort(Protocol):
+    @property
+    def ticks(self) -> int:
+        """Control ticks that stepped a robot since the start (0: not serving yet)."""
+        ...
+
+    @property
+    def data_dir(self) -> Path:
+        """The service's data root: stored paths (episodes, segments) are relative to it."""
+        ...
+
+    # -- what readers see (published snapshots: never waits for a tick) --------------------------------
+    def view(self, robot_id: int) -> RobotView:
+        """The robot as published; ``ServiceError`` 404 for an unknown robot."""
+        ...
+
+    def views(self) -> list[RobotView]: ...
+
+    def requests(self) -> list[AssistanceRequest]:
+        """Open assistance requests, unclaimed first, by priority."""
+        ...
+
+    def metrics(self) -> dict: ...
+
+    def lineages(self, max_age: float = 5.0) -> tuple[registry.LineageSummary, ...]: ...
+
+    # -- an operator's takeover (never waits for a tick: ``server.handovers``, ``server.commands``) -------
+    def claim(self, robot_id: int, operator: str) -> AssistanceRequest: ...
+
+    def heartbeat(self, robot_id: int, operator: str) -> AssistanceRequest: ...
+
+    def command(self, robot_id: int, operator: str, command: TeleopCommand) -> int: ...
+
+    def release(self, robot_id: int, operator: str) -> None: ...
+
+    # -- an admin's (rare) -----------------------------------------------------------------------------------
+    def pause(self, robot_id: int) -> None: ...
+
+    def resume(self, robot_id: int) -> None: ...
+
+    def reset(self, robot_id: int) -> None: ...
+
+    def register_policy(self, path: Path, task: str | None = None, parent: int | None = None) -> int: ...
+
+    def activate_policy(self, version: int, reason: str | None = None) -> None: ...
+
+
+MEMBERS = frozenset(n for n in vars(FleetPort) if not n.startswith("_"))

@@ -1,0 +1,43 @@
+"""The REST API and the console reach the fleet runtime only through ``server.port.FleetPort``."""
+
+import ast
+import inspect
+from pathlib import Path
+
+from server.fleet import Fleet
+from server.port import MEMBERS, FleetPort
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _fleet_attributes(tree: ast.AST) -> set[tuple[int, str]]:
+    """(line, name) of every ``fleet.name``, ``self.fleet.name`` and ``self._fleet.name``."""
+    found = set()
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Attribute):
+            continue
+        owner = node.value
+        name = owner.id if isinstance(owner, ast.Name) else owner.attr if isinstance(owner, ast.Attribute) else None
+        if name in ("fleet", "_fleet"):
+            found.add((node.lineno, node.attr))
+    return found
+
+
+def test_the_api_and_the_console_use_only_the_port():
+    used, past = set(), []
+    for path in sorted([*(ROOT / "server" / "api").glob("*.py"), *(ROOT / "web").glob("*.py")]):
+        for line, name in _fleet_attributes(ast.parse(path.read_text())):
+            used.add(name)
+            if name not in MEMBERS:
+                past.append(f"{path.relative_to(ROOT)}:{line}: fleet.{name}")
+    assert not past, "reaches past server.port.FleetPort:\n" + "\n".join(past)
+    assert {"claim", "release", "command", "views"} <= used  # the check sees the calls it is about
+
+
+def test_the_fleet_implements_the_port_with_its_signatures():
+    for name in MEMBERS:
+        ours, theirs = getattr(FleetPort, name), getattr(Fleet, name, None)
+        if isinstance(ours, property):  # a property, or an attribute the fleet sets
+            assert isinstance(theirs, property) or f"self.{name} = " in inspect.getsource(Fleet), name
+            continue
+        assert list(inspect.signature(ours).parameters) == list(inspect.signature(theirs).parameters), name
