@@ -132,8 +132,7 @@ def test_a_night_whose_job_does_not_end_stops_the_run_and_the_report_says_so(qui
     plan = NightsPlan(
         config=quick_config(root, policy),
         days=3,
-        day_minutes=3.0,
-        day_episodes=1,
+        day_minutes=0.2,  # long enough for the bot's first takeovers, which give the night's job data
         night_timeout_s=1.0,
         data_dir=root / "short-night",
         progress=False,
