@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
-	lift-baselines-hitl-docs resume-docs nights-docs asking-dev-docs \
+	lift-baselines-hitl-docs resume-docs nights-docs nights-lift-docs asking-dev-docs \
 	operator-dev-docs fleet-backends-docs clean
 
 $(BIN)/python:
@@ -202,6 +202,13 @@ nights-docs: install
 	rm -rf var/bench-nights
 	$(BIN)/hitl bench nights --config configs/nights.toml --days 3 --day-minutes 10 --data-dir var/bench-nights \
 		--out docs/results/nights/nights.json --figure docs/figures/nights.png --quiet > /dev/null
+
+# docs/benchmarks/nights.md, "The lift lineage alone": configs/nights.toml's lift robots without cup-stack and the
+# drawer, 2 days of 10 minutes and the night between them (about 40 minutes where data/ holds the lift demonstrations)
+nights-lift-docs: install
+	rm -rf var/bench-nights-lift
+	$(BIN)/hitl bench nights --config configs/nights-lift.toml --days 2 --day-minutes 10 --data-dir var/bench-nights-lift \
+		--out docs/results/nights/lift.json --figure docs/figures/nights-lift.png --quiet > /dev/null
 
 # docs/benchmarks/nights.md, "Why lift-cube robots asked": the bundled lift policy on lift-cube with the fleet's
 # asking (spread-stall, continuous, cooldown 10) on development seeds, the watchdog at half and at 80% of the

@@ -340,15 +340,18 @@ def nights_report(
         segments = list(s.scalars(select(SegmentRecord)))
         refs = {v.id: v.ref for v in s.scalars(select(PolicyVersion))}
     operator_s: dict[int, float] = defaultdict(float)
+    causes: dict[int, list[str]] = defaultdict(list)  # episode id -> what made it ask, per takeover
     for seg in segments:
         if seg.episode_id is not None and seg.ended_at is not None:
             operator_s[seg.episode_id] += (seg.ended_at - seg.started_at).total_seconds()
+        if seg.episode_id is not None:
+            causes[seg.episode_id].append(_cause(seg.reason))
     day_docs = []
     for n, w in enumerate(days, start=1):
         mine = [e for e in episodes if e.started_at >= w.started and (w.ended is None or e.started_at < w.ended)]
         per_task = {}
         for task in sorted({g.task for g in settings.robots}):
-            per_task[task] = _task_day([e for e in mine if e.task == task], operator_s, refs)
+            per_task[task] = _task_day([e for e in mine if e.task == task], operator_s, refs, causes)
         day_docs.append(
             {
                 "day": n,
@@ -356,7 +359,7 @@ def nights_report(
                 "minutes": round(((w.ended or datetime.now(UTC)) - w.started).total_seconds() / 60, 2),
                 "bot": w.bot,
                 "per_task": per_task,
-                "shifted_lift": _task_day([e for e in mine if e.task in SHIFTED_LIFT], operator_s, refs),
+                "shifted_lift": _task_day([e for e in mine if e.task in SHIFTED_LIFT], operator_s, refs, causes),
             }
         )
     return {
@@ -380,13 +383,30 @@ def _config_name(path: Path) -> str:
     return portable(path)
 
 
-def _task_day(episodes: list[EpisodeRecord], operator_s: dict[int, float], refs: dict[int, str]) -> dict:
+def _cause(reason: str | None) -> str:
+    """What made a robot ask, from its request's reason (``server.fleet_loop``): ``watchdog``, or the
+    asking signal's name."""
+    head = (reason or "").split(":", 1)[0].strip()
+    return head or "unknown"
+
+
+def _task_day(
+    episodes: list[EpisodeRecord], operator_s: dict[int, float], refs: dict[int, str], causes: dict[int, list[str]]
+) -> dict:
+    """One task's day; ``takeovers_by_cause``: what made the robots ask (the first takeover of each episode
+    that asked: the watchdog, or the signal); ``assisted_steps_per_helped_episode``: the operator's steps
+    in an episode that asked (what a request costs, where ``assisted_steps_per_episode`` also counts the
+    episodes that asked nothing)."""
     done = [e for e in episodes if e.outcome in FINISHED]
     n = len(done)
     steps = sum(e.steps for e in done)
     versions: dict[str, int] = defaultdict(int)
+    first_cause: dict[str, int] = defaultdict(int)
+    helped = [e for e in done if e.assistance_events > 0]
     for e in done:
         versions[refs.get(e.policy_id, "?")] += 1
+        if causes.get(e.id):
+            first_cause[causes[e.id][0]] += 1
 
     def per(x: float) -> float | None:
         return round(x / n, 3) if n else None
@@ -400,6 +420,10 @@ def _task_day(episodes: list[EpisodeRecord], operator_s: dict[int, float], refs:
         "operator_seconds_per_episode": per(sum(operator_s.get(e.id, 0.0) for e in done)),
         "requests_per_step": round(sum(e.assistance_events for e in done) / steps, 4) if steps else None,
         "versions": dict(sorted(versions.items())),
+        "takeovers_by_cause": dict(sorted(first_cause.items())),
+        "assisted_steps_per_helped_episode": round(sum(e.assisted_steps for e in helped) / len(helped), 3)
+        if helped
+        else None,
     }
 
 

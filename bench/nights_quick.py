@@ -54,6 +54,7 @@ def quick_config(root: Path, policy: Path, **finetune) -> Path:
         "schedule": "0 3 * * *",
         "steps": 200,
         "eval_episodes": 2,
+        "fit_episodes": 2,
         "threads": 1,
         "lease_seconds": 5.0,
         "idle_priority": False,

@@ -116,7 +116,7 @@ def _finetune_config(args: argparse.Namespace, settings):
 
     ft = settings.finetune
     given = {"eval_episodes": ft.eval_episodes, "tolerance": ft.tolerance, "min_gain": ft.min_gain}
-    given |= {"eval_seed": ft.eval_seed, "steps": ft.steps}
+    given |= {"eval_seed": ft.eval_seed, "steps": ft.steps, "fit_episodes": ft.fit_episodes, "fit_seed": ft.fit_seed}
     given["widen_obs_range"] = ft.widen_obs_range and not args.keep_obs_range
     given["successful_only"] = ft.successful_only if args.successful_only is None else args.successful_only
     given["takeover_tail"] = ft.takeover_tail if args.takeover_tail is None else (args.takeover_tail or None)

@@ -105,7 +105,7 @@ class DiffusionPolicy(nn.Module):
         data's min/max in that frame (positions; the 6D rotation and the gripper over [-1, 1])."""
         obs_t = torch.as_tensor(np.asarray(obs), dtype=torch.float32)
         obs_t = obs_t.reshape(len(obs_t), -1, self.config.obs_dim)  # (N, H or 1, obs_dim)
-        self.obs_normalizer.fit(self._frame_obs(obs_t))
+        self.obs_normalizer.fit(self.frame_obs(obs_t))
         if self.frame is not None:  # actions (N, [C,] action_dim) pair with the N observations
             act = torch.as_tensor(np.asarray(actions), dtype=torch.float32)
             act = act.reshape(len(obs_t), -1, self.config.action_dim)
@@ -132,19 +132,19 @@ class DiffusionPolicy(nn.Module):
     def normalize_action(self, action: torch.Tensor) -> torch.Tensor:
         return self.action_normalizer.normalize(action)
 
-    def _frame_obs(self, obs: torch.Tensor) -> torch.Tensor:
+    def frame_obs(self, obs: torch.Tensor) -> torch.Tensor:
         """(B, H, obs_dim) raw world -> what the network is fed before normalization."""
         return obs if self.frame is None else self.frame.observation(obs)
 
     def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
         """(B, H, obs_dim) raw -> the normalized observation the network sees (in its frame)."""
-        return self.obs_normalizer.normalize(self._frame_obs(torch.as_tensor(obs, dtype=torch.float32)))
+        return self.obs_normalizer.normalize(self.frame_obs(torch.as_tensor(obs, dtype=torch.float32)))
 
     def widen_obs_range(self, obs: np.ndarray | torch.Tensor) -> int:
         """Widens the observation normalizer to cover ``obs`` (M, H, obs_dim) raw, as the network
         sees it; returns the number of dimensions widened (MinMaxNormalizer.widen)."""
         obs_t = torch.as_tensor(np.asarray(obs), dtype=torch.float32)
-        return self.obs_normalizer.widen(self._frame_obs(obs_t.reshape(len(obs_t), -1, obs_t.shape[-1])))
+        return self.obs_normalizer.widen(self.frame_obs(obs_t.reshape(len(obs_t), -1, obs_t.shape[-1])))
 
     def _to_net_actions(self, actions: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
         """(B, C, action_dim) raw world actions -> the network's normalized actions."""

@@ -10,6 +10,7 @@ calibrated threshold on such rollouts (the share of steps above it).
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,6 +20,7 @@ from policy.calibrate import FLAG_SHARE
 from policy.controller import Controller, ControllerConfig, RobotStep
 from policy.diffusion_policy import DiffusionPolicy
 from policy.lockstep import run_lockstep
+from policy.signals.base import AssistanceSignal
 from policy.signals.sampling import DenoisingConfig, DenoisingSignal
 from policy.uncertainty import UncertaintyConfig, UncertaintyResult
 from sim.env import Task
@@ -40,6 +42,7 @@ class PolicyEpisode:
     trace: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(
         default_factory=list
     )  # (obs history, current, action)
+    signal_scores: list[dict[str, float]] = field(default_factory=list)  # per step, each shadow signal's score
 
     def summary(self) -> dict:
         u = np.asarray(self.uncertainty)
@@ -89,13 +92,16 @@ def rollout_policy(
     progress: bool = True,
     trace: bool = False,
     seed: int = 0,
+    signals: Mapping[str, AssistanceSignal] | None = None,
 ) -> tuple[list[PolicyEpisode], dict]:
     """Runs one autonomous episode per seed through the controller; an episode ends at success or
     at the task horizon. ``uncertainty``: score the denoising metric at every step with these
     settings (the fleet's shadow scoring); ``keep_fields`` keeps every step's field, probe inputs
     and task context; ``trace`` keeps every step's observation history, probe centre and executed
-    action; ``seed``: the controller's sampling seed. Returns (episodes, timing)."""
-    signals = {}
+    action; ``seed``: the controller's sampling seed; ``signals``: scored in the shadow at every step
+    (none asks), their scores kept in ``signal_scores``. Returns (episodes, timing)."""
+    shadow = dict(signals or {})
+    signals = dict(shadow)
     if uncertainty is not None:
         signals["denoising"] = DenoisingSignal(policy, DenoisingConfig.from_uncertainty(uncertainty))
     controller = Controller(policy, signals, None, make_task(task_name).action_space, ControllerConfig(seed=seed))
@@ -114,6 +120,8 @@ def rollout_policy(
             ep.context.append(context_for(task.name)[1](task))
         if trace:
             ep.trace.append((step.obs, step.current, step.action.astype(np.float32)))
+        if shadow and step.scores:
+            ep.signal_scores.append({name: step.scores[name] for name in shadow})
 
     start = time.perf_counter()
     outcomes = run_lockstep(

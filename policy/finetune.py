@@ -41,7 +41,9 @@ class FinetuneConfig:
     normalizer to cover the takeover observations (False: keep the parent's, as before);
     successful_only, takeover_tail: which takeovers and steps to learn from
     (``storage.takeovers.TakeoverSelection``: only takeovers of successful episodes; of each, only its
-    last ``takeover_tail`` steps)."""
+    last ``takeover_tail`` steps); fit_episodes, fit_seed: the candidate's own episodes per task on which
+    its asking signal's thresholds are fitted (``fit_threshold_on_own_episodes``), on seeds apart from the
+    gate's."""
 
     ratio: float = 0.5
     batch_size: int = 64
@@ -61,17 +63,28 @@ class FinetuneConfig:
     widen_obs_range: bool = True
     successful_only: bool = False
     takeover_tail: int | None = None
+    fit_episodes: int = 20
+    fit_seed: int = 60_000
 
     def __post_init__(self) -> None:
         self.selection  # noqa: B018 - validates takeover_tail
         if not 0 < self.ratio <= 1:
             raise ValueError(f"ratio must be in (0, 1], got {self.ratio!r}")
-        for name in ("batch_size", "min_steps", "max_steps", "checkpoint_every", "eval_episodes"):
+        for name in ("batch_size", "min_steps", "max_steps", "checkpoint_every", "eval_episodes", "fit_episodes"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
         if self.steps is not None and not (isinstance(self.steps, int) and self.steps >= 1):
             raise ValueError(f"steps must be an integer >= 1, got {self.steps!r}")
+        if not (isinstance(self.fit_seed, int) and self.fit_seed >= 0):
+            raise ValueError(f"fit_seed must be an integer >= 0, got {self.fit_seed!r}")
+        fit = range(self.fit_seed, self.fit_seed + self.fit_episodes)
+        judged = range(self.eval_seed, self.eval_seed + self.eval_episodes)
+        if fit.start < judged.stop and judged.start < fit.stop:
+            raise ValueError(
+                f"the threshold-fitting seeds {fit.start}..{fit.stop - 1} overlap the gate's "
+                f"{judged.start}..{judged.stop - 1}: the gate must judge on episodes that chose no setting"
+            )
         if self.min_steps > self.max_steps:
             raise ValueError(f"min_steps {self.min_steps} > max_steps {self.max_steps}")
         if not (self.passes > 0 and math.isfinite(self.passes)):
@@ -226,6 +239,55 @@ def finetune_policy(
         "resumed_from_step": resume.step if resume is not None else None,
     }
     return ema, history
+
+
+MIN_FIT_SUCCESSES = 10  # fewer of the candidate's own successful episodes fit nothing
+
+
+def fit_threshold_on_own_episodes(
+    policy: DiffusionPolicy,
+    signal,
+    name: str,
+    tasks: list[str],
+    scene: str,
+    episodes: int,
+    seed: int,
+    progress: bool = True,
+) -> dict:
+    """Raises ``signal``'s threshold for ``scene`` (``AssistanceSignal.fits_on_episodes``) to the level at
+    which it would have asked on the most doubtful of ``policy``'s own successful autonomous episodes of
+    ``tasks`` (``episodes`` per task, seeds ``seed ..``), when that is above the threshold calibrated on
+    the demonstrations; returns the evidence.
+
+    Why: a fine-tuned version is calibrated on the demonstrations as its parent was, but served on its
+    own episodes, and asked where an operator was not needed (docs/benchmarks/nights.md): a lift version
+    fine-tuned on grasps of other objects is less sure of the cube's grasp than of the demonstrations'
+    (``familiar``: lift-cube), and one that has learnt to grasp the hammer pauses above it before it does
+    (``new``: the shifted tasks). The requests an operator is not needed for are those of the episodes
+    the policy finishes alone: with the threshold at the highest level among N of them, a further such
+    episode (exchangeable with them) asks with probability at most 1 / (N + 1), 4.8% for N = 20. The
+    threshold is only ever raised; fewer than ``MIN_FIT_SUCCESSES`` successful episodes leave it as
+    calibrated, as for a parent that fails on the new scenes."""
+    from policy.evaluate import rollout_policy
+
+    if not signal.fits_on_episodes:
+        raise ValueError(f"signal {name!r} has no rule to fit on episodes")
+    seeds = list(range(seed, seed + episodes))
+    done = []
+    for task in tasks:
+        eps, _ = rollout_policy(policy, task, seeds, n_envs=min(4, episodes), progress=progress, signals={name: signal})
+        signal.reset()
+        done += [e for e in eps if e.success]
+    evidence = {"tasks": list(tasks), "scene": scene, "episodes": episodes * len(tasks), "seed": seed}
+    evidence["successes"] = len(done)
+    if len(done) < MIN_FIT_SUCCESSES:
+        return evidence | {"factor": None, "why": f"fewer than {MIN_FIT_SUCCESSES} successful episodes to fit on"}
+    levels = [signal.episode_level(np.array([s[name] for s in e.signal_scores]), scene) for e in done]
+    evidence |= {"levels": [round(v, 4) for v in levels], "asked": sum(v > signal.threshold for v in levels)}
+    factor = max(1.0, max(levels) / signal.threshold)
+    if factor > 1.0:
+        signal.scale_threshold(scene, factor, evidence)
+    return evidence | {"factor": factor}
 
 
 @dataclass(frozen=True)

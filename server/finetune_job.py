@@ -187,7 +187,7 @@ class FinetuneRunner:
         data = job.collect_data()
         trained = job.train(data)
         candidate = job.write_candidate(data, trained)
-        calibration = job.recalibrate(trained, candidate)
+        calibration = job.recalibrate(data, trained, candidate)
         evaluation = job.evaluate_candidate(data, trained)
         summary = job.register(data, candidate, calibration, evaluation)
         self.report(json.dumps(summary))

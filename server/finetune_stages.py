@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import torch
 from sqlalchemy import select
 from sqlalchemy.orm import sessionmaker
 
@@ -32,6 +33,7 @@ from policy.finetune import (
     TaskResult,
     evaluate,
     finetune_policy,
+    fit_threshold_on_own_episodes,
     gate,
     pretraining_split,
 )
@@ -126,7 +128,8 @@ def _record_pretraining(info: dict, folder: Path, progress: bool, report: Callab
             f"job {job_id}: recording {len(missing)} of the {recipe.episodes} pretraining episodes into "
             f"{paths.portable(folder)} ({recipe.command(paths.portable(folder))})"
         )
-        ensure_demos(recipe, folder, progress=progress)
+        # as many recording processes as the job has threads (``[finetune] threads``): robosuite uses one core
+        ensure_demos(recipe, folder, progress=progress, workers=max(1, torch.get_num_threads()))
 
 
 @dataclass(frozen=True)
@@ -321,9 +324,19 @@ class JobRun:
         save_policy(trained.policy, out, child_info)
         return Candidate(out, child_info, manifest)
 
-    def recalibrate(self, trained: Trained, candidate: Candidate) -> dict:
+    def _tasks(self, data: JobData) -> tuple[str, list[str]]:
+        """The lineage's training task, and the target tasks the gate compares on: those named for the
+        run or the lineage, else the tasks its takeovers came from."""
+        train_task = self.info.get("task") or self.plan.parent.task
+        targets = self.request.eval_tasks or self.eval_tasks.get(self.plan.lineage) or data.tasks or [train_task]
+        return train_task, list(targets)
+
+    def recalibrate(self, job_data: JobData, trained: Trained, candidate: Candidate) -> dict:
         """The denoising threshold on the held-out validation episodes, and each of the parent's signals
-        that calibrates on demonstrations alone; signals with trained models are not carried."""
+        that calibrates on demonstrations alone; signals with trained models are not carried. A signal
+        fitted on episodes then has its thresholds fitted on the candidate's own episodes: the training task's
+        (a familiar scene) and the target tasks' (new ones), seeds apart from the gate's
+        (``policy.finetune.fit_threshold_on_own_episodes``)."""
         from policy.calibrate import calibrate
         from policy.signal_data import demo_data
         from policy.signals import load_signal, save_signal
@@ -335,7 +348,8 @@ class JobRun:
         ucfg = UncertaintyConfig(**parent_cal["uncertainty"]) if parent_cal.get("uncertainty") else None
         record = calibrate(child, info, data, self.cfg.quantile, ucfg, progress=self.progress)
         save_calibration(out, record)
-        carried, dropped = [], {}
+        carried, dropped, fitted = [], {}, {}
+        cfg, (train_task, targets) = self.cfg, self._tasks(job_data)
         signals = parent_dir / "signals"
         for folder in sorted(signals.iterdir()) if signals.is_dir() else []:
             try:
@@ -347,18 +361,25 @@ class JobRun:
                 dropped[folder.name] = f"trains on the policy itself: run `hitl train-signal --signal {folder.name}`"
                 continue
             signal.calibrate(demo_data(child, info, data), progress=self.progress)
+            if signal.fits_on_episodes:  # the training task is its familiar scene, the target tasks new ones
+                fitted[folder.name] = {}
+                for scene, tasks in (("familiar", [train_task]), ("new", [t for t in targets if t != train_task])):
+                    if tasks:
+                        self.beat.check()
+                        fitted[folder.name][scene] = fit_threshold_on_own_episodes(
+                            child, signal, folder.name, tasks, scene, cfg.fit_episodes, cfg.fit_seed, self.progress
+                        )
             save_signal(signal, out, {"command": "hitl finetune (recalibrated on the validation episodes)"})
             carried.append(folder.name)
-        record |= {"signals": carried, "signals_not_carried": dropped}
+        record |= {"signals": carried, "signals_not_carried": dropped, "signals_fitted_on_own_episodes": fitted}
         save_calibration(out, record)
         return record
 
     def evaluate_candidate(self, data: JobData, trained: Trained) -> Evaluation:
         """Parent and candidate through the one controller on the same seeds, on the training task and the
         target tasks, and the promotion gate's decision."""
-        cfg, plan = self.cfg, self.plan
-        train_task = self.info.get("task") or plan.parent.task
-        targets = list(self.request.eval_tasks or self.eval_tasks.get(plan.lineage) or data.tasks or [train_task])
+        cfg = self.cfg
+        train_task, targets = self._tasks(data)
         all_tasks = list(dict.fromkeys([train_task, *targets]))
         self._update(stage="evaluate", progress=0.8)
         parent_eval = self._parent_eval(all_tasks)

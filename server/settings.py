@@ -92,6 +92,16 @@ class FinetuneSettings(BaseModel):
         description="first seed of the gate's evaluation episodes: seeds the fleet never runs (robot r runs "
         "seed + 1000 r + k), so the gate is never judged on an episode it trained on",
     )
+    fit_episodes: int = Field(
+        20,
+        ge=1,
+        le=1000,
+        description="the new version's own autonomous episodes per task on which its asking signal's thresholds are "
+        "fitted (policy.finetune.fit_threshold_on_own_episodes)",
+    )
+    fit_seed: int = Field(
+        60_000, ge=0, description="first seed of those episodes: apart from the gate's and from the fleet's"
+    )
     steps: int | None = Field(
         None, ge=1, description="fixed training steps (default: grown with the takeover data, FinetuneConfig.steps_for)"
     )
@@ -103,7 +113,9 @@ class FinetuneSettings(BaseModel):
         description="benchmarks and tests only: the schedule reads the time from this file (ISO 8601) instead "
         "of the system clock, so a benchmark moves the night forward (`hitl bench nights`)",
     )
-    threads: int = Field(1, ge=1, le=256, description="torch threads of the job")
+    threads: int = Field(
+        1, ge=1, le=256, description="torch threads of the job, and its processes recording missing pretraining data"
+    )
 
     @field_validator("schedule")
     @classmethod

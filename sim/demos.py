@@ -86,23 +86,35 @@ def read_recipe(folder: str | Path) -> DemoRecipe | None:
     return DemoRecipe.from_dict(json.loads(path.read_text()))
 
 
-def ensure_demos(recipe: DemoRecipe, folder: str | Path, progress: bool = True) -> list[Path]:
+def ensure_demos(recipe: DemoRecipe, folder: str | Path, progress: bool = True, workers: int = 1) -> list[Path]:
     """Records, seeded as ``recipe`` says, the episodes of ``recipe`` that ``folder`` lacks (all of them
     on a fresh machine); returns the files it recorded (none when the folder is complete).
 
     The episodes are recorded into a sibling folder and moved in one by one when all are written, so
     a run that is interrupted leaves no half-written episode in ``folder``; the next call records what
-    is still missing."""
+    is still missing. ``workers`` > 1 records that many shares of the seeds in as many processes
+    (robosuite is single-threaded; each episode depends on its seed alone, so the files are the same)."""
     folder = Path(folder)
     missing = [f for f in recipe.files(folder) if not f.is_file()]
     if not missing:
         return []
+    if not (isinstance(workers, int) and workers >= 1):
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     staging = folder.with_name(f".{folder.name}.recording")
     shutil.rmtree(staging, ignore_errors=True)
     seeds = sorted(int(f.stem.rsplit("seed", 1)[1]) for f in missing)
+    size = -(-len(seeds) // workers)  # consecutive shares: one task per run of seeds
+    shares = [seeds[i : i + size] for i in range(0, len(seeds), size)]
+    jobs = [(recipe, staging, run, progress and i == 0) for i, share in enumerate(shares) for run in _runs(share)]
     try:
-        for lo, n in _runs(seeds):
-            record_demos(recipe.task, n, staging, seed=lo, progress=progress, noise=recipe.noise, recipe=False)
+        if len(shares) == 1:
+            for job in jobs:
+                _record_run(job)
+        else:
+            import multiprocessing
+
+            with ProcessPoolExecutor(len(shares), mp_context=multiprocessing.get_context("spawn")) as pool:
+                list(pool.map(_record_run, jobs))
         folder.mkdir(parents=True, exist_ok=True)
         for f in missing:
             os.replace(staging / f.name, f)
@@ -111,6 +123,12 @@ def ensure_demos(recipe: DemoRecipe, folder: str | Path, progress: bool = True) 
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return missing
+
+
+def _record_run(job: tuple[DemoRecipe, Path, tuple[int, int], bool]) -> None:
+    """One run of consecutive seeds (first, count) of ``recipe`` into ``staging``: a process's share."""
+    recipe, staging, (lo, n), progress = job
+    record_demos(recipe.task, n, staging, seed=lo, progress=progress, noise=recipe.noise, recipe=False)
 
 
 def _runs(seeds: list[int]) -> list[tuple[int, int]]:

@@ -179,6 +179,9 @@ class SignalConfig:
         return asdict(self)
 
 
+SCENES = ("familiar", "new")  # the policy's training scene, and one outside its demonstrations
+
+
 class AssistanceSignal(ABC):
     """Base class. Subclasses set ``name`` and ``Config`` and implement ``score`` and ``_calibrate``."""
 
@@ -186,6 +189,8 @@ class AssistanceSignal(ABC):
     Config: ClassVar[type[SignalConfig]]
     needs_rollouts: ClassVar[bool] = False  # calibration needs the policy's own rollouts
     has_models: ClassVar[bool] = False  # auxiliary networks trained by ``hitl train-signal``
+    # its thresholds can be fitted on the policy's own successful episodes (``episode_level``)
+    fits_on_episodes: ClassVar[bool] = False
 
     def __init__(self, policy: DiffusionPolicy, config: SignalConfig | None = None) -> None:
         config = config if config is not None else self.Config()
@@ -213,6 +218,17 @@ class AssistanceSignal(ABC):
 
     @abstractmethod
     def _calibrate(self, data: CalibrationData, progress: bool) -> dict: ...
+
+    def episode_level(self, scores: np.ndarray, scene: str) -> float:
+        """Signals with ``fits_on_episodes``: the highest threshold at which this signal would have asked
+        on an episode whose scores (one per step) were ``scores``, by its rule for a ``scene`` of
+        ``SCENES`` (the policy's training scene, or a new one)."""
+        raise SignalError(f"signal {self.name!r} has no rule to fit on episodes")
+
+    def scale_threshold(self, scene: str, factor: float, evidence: dict) -> None:
+        """Signals with ``fits_on_episodes``: its threshold for ``scene`` times ``factor`` (>= 1), the
+        ``evidence`` recorded with the calibration."""
+        raise SignalError(f"signal {self.name!r} has no rule to fit on episodes")
 
     # -- per step -------------------------------------------------------------------------
     def reset(self, robot_ids: Iterable[int] | None = None) -> None:  # noqa: B027 - stateless signals keep nothing

@@ -18,9 +18,16 @@ the estimates to different modes, which adds the squared distance between modes.
 field it does not depend on where the probe sits relative to the target: the probe is always
 centred on the action the robot is about to take.
 
-The observation term is how far the (normalized) observation lies outside the range the policy
-was trained on, in units of that range, averaged over dimensions: 0 inside the training data's
-box. It is what tells a state the policy never saw from one it saw and is merely unsure about.
+The observation term is how far the observation lies outside the range of the demonstrations the
+signal was calibrated on (the policy's training demonstrations), in units of that range, averaged
+over dimensions: 0 inside their box. It is what tells a state the policy never saw demonstrated from
+one it saw and is merely unsure about. The box is recorded with the calibration
+(``novelty_range``), not read from the policy's observation normalizer: fine-tuning widens the
+normalizer to cover the takeovers (``policy.finetune``), so that a lift policy fine-tuned on a few
+grasps of a hammer would otherwise find every hammer scene familiar, approach included, which it
+never saw done (docs/benchmarks/nights.md). A calibration recorded before the box was (the bundled
+policies' until they are recalibrated) measures against the normalizer, which is the same box for a
+policy fitted on those demonstrations.
 
     score = spread / spread_scale + novelty_weight · novelty  (+ hover_weight · hover / hover_scale)
 
@@ -40,6 +47,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from policy.normalizer import MinMaxNormalizer
 from policy.signals.base import (
     AssistanceSignal,
     CalibrationData,
@@ -119,6 +127,29 @@ def observation_novelty(normalized: torch.Tensor) -> torch.Tensor:
     return (torch.relu(last - 1) + torch.relu(-last)).mean(dim=-1)
 
 
+def demonstrations_range(policy, obs: np.ndarray | torch.Tensor) -> dict[str, list[float]]:
+    """The box of ``obs`` (M, H, obs_dim) raw demonstrations in the policy's network frame, as the
+    policy's own normalizer fits its training data (``MinMaxNormalizer.fit``): {"low", "span"}."""
+    obs_t = torch.as_tensor(np.asarray(obs), dtype=torch.float32)
+    if len(obs_t) == 0:
+        raise SignalError("spread: no demonstrations to take the observation range from")
+    box = MinMaxNormalizer(policy.config.obs_dim).fit(policy.frame_obs(obs_t))
+    return {"low": box.low.tolist(), "span": box.span.tolist()}
+
+
+def novelty_against(policy, obs: torch.Tensor, box: dict | None) -> torch.Tensor:
+    """(B,) ``observation_novelty`` of ``obs`` (B, H, obs_dim) raw against ``box``
+    (``demonstrations_range``), or against the policy's observation normalizer when None."""
+    if box is None:
+        return observation_novelty(policy.normalize_obs(obs))
+    low = torch.as_tensor(box["low"], dtype=torch.float32)
+    span = torch.as_tensor(box["span"], dtype=torch.float32)
+    if low.shape != (policy.config.obs_dim,) or span.shape != low.shape or not bool((span > 0).all()):
+        raise SignalError(f"spread: novelty_range needs {policy.config.obs_dim} lows and positive spans")
+    framed = policy.frame_obs(torch.as_tensor(obs, dtype=torch.float32))
+    return observation_novelty((framed - low.to(framed.device)) / span.to(framed.device))
+
+
 class SpreadSignal(AssistanceSignal):
     name = "spread"
     Config = SpreadConfig
@@ -134,8 +165,8 @@ class SpreadSignal(AssistanceSignal):
         self._noise.reset(robot_ids)
 
     @torch.no_grad()
-    def parts(self, batch: SignalInput) -> dict[str, np.ndarray]:
-        """(B,) spread and novelty, before scaling."""
+    def parts(self, batch: SignalInput, novelty_range: dict | None = None) -> dict[str, np.ndarray]:
+        """(B,) spread and novelty (against ``novelty_range``, ``novelty_against``), before scaling."""
         policy, cfg = self.policy, self.config
         action = batch.action if batch.action is not None else self.sample_chunks(batch.obs, 1)[:, 0]
         center = policy.normalize_action(action)
@@ -143,7 +174,7 @@ class SpreadSignal(AssistanceSignal):
         abar = float(policy.schedule.alphas_cumprod[cfg.noise_step])
         x0 = renoised_estimates(policy.noise_prediction, batch.obs, center, abar, cfg.noise_step, xi)
         spread = x0[..., DIMS[cfg.dims]].double().var(dim=1, unbiased=False).mean(dim=(1, 2))
-        novelty = observation_novelty(policy.normalize_obs(batch.obs)).double()
+        novelty = novelty_against(policy, batch.obs, novelty_range).double()
         out = {"spread": spread.numpy(), "novelty": novelty.numpy()}
         if cfg.hover_weight > 0:
             out["hover"] = self._hover(batch).numpy()
@@ -176,15 +207,16 @@ class SpreadSignal(AssistanceSignal):
 
     def score(self, batch: SignalInput) -> Scores:
         """Before calibration the spread is taken in the normalized action space's own units (scale 1)."""
-        parts = self.parts(batch)
+        parts = self.parts(batch, (self.calibration or {}).get("novelty_range"))
         return Scores(self.combine(parts, self.calibration), parts)
 
     def _calibrate(self, data: CalibrationData, progress: bool) -> dict:
         val, size = data.val, self.config.calibration_batch
+        box = demonstrations_range(self.policy, data.train.obs)
         chunks = []
         for i in tqdm(range(0, len(val), size), desc="calibrate spread", disable=not progress, unit="batch"):
             rows = np.arange(i, min(i + size, len(val)))
-            chunks.append(self.parts(SignalInput(val.obs[rows], val.current[rows], rows)))
+            chunks.append(self.parts(SignalInput(val.obs[rows], val.current[rows], rows), box))
         if not chunks:
             raise SignalError("spread: no validation demonstrations to calibrate on")
         parts = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
@@ -195,4 +227,4 @@ class SpreadSignal(AssistanceSignal):
             if not value > 0:
                 raise SignalError(f"spread: the validation demonstrations give a zero median for {name}")
         record = quantile_record(self.combine(parts, scales), self.config.quantile, "validation demonstrations")
-        return {**record, **scales, "novelty_max": float(parts["novelty"].max())}
+        return {**record, **scales, "novelty_max": float(parts["novelty"].max()), "novelty_range": box}

@@ -18,13 +18,22 @@ Why (docs/signals.md, "spread-stall"; docs/benchmarks/hitl.md):
   without stalling.
 
 So the scene decides which one asks. A robot's scene is *new* once the observation lies outside the
-policy's training range by more than ``novelty_gate`` (``spread``'s novelty term: how far outside,
-in units of the range, averaged over dimensions). Measured on development seeds (docs/signals.md,
+policy's training demonstrations' range by more than ``novelty_gate`` (``spread``'s novelty term: how
+far outside, in units of the range, averaged over dimensions; the range is the demonstrations' the
+signal was calibrated on, so a version fine-tuned on a few takeovers of an unseen object, whose
+network normalizer now covers them, still finds that object's scenes new, and ``stall`` still asks
+there when it is stuck). Measured on development seeds (docs/signals.md,
 "spread-stall"): at most 0.048 on the scenes the policies were trained for (lift-cube, cup-stack and
 open-drawer, failed episodes included), 0.36 to 0.56 at every step on the unseen objects. The gate,
 0.15, sits between them with a factor of about 3 to each side. The decision is kept to the end of the
 episode: the object does not change during it, and a robot that switched signals midway would be
 judged by two rules in one takeover. ``reset`` forgets it.
+
+**Fitted on the policy's own episodes** (``episode_level``, ``scale_threshold``): the fine-tuning
+job raises each half's threshold to the level at which the most doubtful of the new version's own
+successful episodes would have asked, ``spread``'s on the training task and ``stall``'s on the new
+scenes the takeovers came from (``policy.finetune.fit_threshold_on_own_episodes``); the
+demonstrations' threshold is kept beside it.
 
 The score is the active signal's score over its own threshold, so the threshold is 1: a score of 2
 means twice the calibrated level, whichever signal asks. That makes scores comparable across tasks
@@ -41,6 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from policy.signals.base import (
+    SCENES,
     AssistanceSignal,
     CalibrationData,
     Patience,
@@ -104,6 +114,13 @@ class SpreadStallConfig(SignalConfig):
 FLOOR = 1e-9  # a threshold at or under 0 counts as this: any positive score is far over it
 
 
+def _half(scene: str) -> str:
+    """The half that asks on ``scene``."""
+    if scene not in SCENES:
+        raise SignalError(f"spread-stall: scene must be one of {SCENES}, got {scene!r}")
+    return "spread" if scene == "familiar" else "stall"
+
+
 def _over(score: np.ndarray, threshold: float) -> np.ndarray:
     """The score in units of its threshold. A calibration can give 0 (``stall``: the policy never stood
     still on the validation steps); the score is then divided by ``FLOOR``, so it stays finite."""
@@ -113,6 +130,7 @@ def _over(score: np.ndarray, threshold: float) -> np.ndarray:
 class SpreadStallSignal(AssistanceSignal):
     name = "spread-stall"
     Config = SpreadStallConfig
+    fits_on_episodes = True
 
     def __init__(self, policy, config=None) -> None:
         super().__init__(policy, config)
@@ -189,6 +207,33 @@ class SpreadStallSignal(AssistanceSignal):
                 return "new scene, the policy would undo the operator's work"
             return f"new scene, the policy is stuck: stall {scores.parts['stall'][j]:.2g}× its threshold"
         return f"the policy is unsure: spread {scores.parts['spread'][j]:.3g}× its threshold"
+
+    def episode_level(self, scores: np.ndarray, scene: str) -> float:
+        """The score is the asking half's over its threshold, and the robot asks once that half's
+        patience (``spread_patience`` on a familiar scene, ``patience`` on a new one) of consecutive
+        steps exceed this signal's threshold: the level it would have asked at is the largest value
+        that many consecutive steps all reached (0 for a shorter episode). ``reask_undo`` asks only
+        after a takeover, which an autonomous episode has none of."""
+        v = np.asarray(scores, dtype=np.float64)
+        p = self.config.spread_patience if _half(scene) == "spread" else self.config.patience
+        if len(v) < p:
+            return 0.0
+        return float(np.lib.stride_tricks.sliding_window_view(v, p).min(axis=1).max())
+
+    def scale_threshold(self, scene: str, factor: float, evidence: dict) -> None:
+        """The asking half's threshold for ``scene`` (``spread`` on a familiar scene, ``stall`` on a new
+        one) times ``factor``; the other half's is left as it is."""
+        half = _half(scene)
+        if not (isinstance(factor, int | float) and math.isfinite(factor) and factor >= 1):
+            raise SignalError(f"spread-stall: a threshold fitted on episodes can only be raised, got factor {factor!r}")
+        if self.calibration is None:
+            raise SignalError("spread-stall: calibrate before fitting a threshold on episodes")
+        record = dict(self.calibration[half])
+        record["demonstrations_threshold"] = record.get("demonstrations_threshold", record["threshold"])
+        record["threshold"] = float(record["threshold"]) * float(factor)
+        record["own_episodes"] = dict(evidence) | {"factor": float(factor)}
+        self.calibration = dict(self.calibration) | {half: record}
+        self.reset()
 
     def _calibrate(self, data: CalibrationData, progress: bool) -> dict:
         spread = self.spread.calibrate(data, progress)

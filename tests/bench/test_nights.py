@@ -112,6 +112,9 @@ def test_days_and_nights_through_the_service_with_a_crash_mid_night(quick_fleet)
             assert t["episodes"] >= 1 and t["requests_per_episode"] > 0, (task, day, days[0].bot, days[-1].bot)
             assert t["assisted_steps_per_episode"] > 0 and t["operator_seconds_per_episode"] > 0
             assert t["versions"] == {"policy@1": t["episodes"]}  # the refused candidate never served
+            # the tiny policy's signal asks at once (its threshold is under every score): no watchdog
+            assert set(t["takeovers_by_cause"]) == {"spread-stall"}, t
+            assert t["assisted_steps_per_helped_episode"] >= t["assisted_steps_per_episode"]
     assert report["nights"][0]["jobs"][0]["gate"]["promote"] is False
     assert report["goals"]["day2"]["assisted_steps_ratio"] is not None
     assert day2["clock"].startswith(due.date().isoformat())

@@ -51,6 +51,64 @@ def test_steps_scale_with_the_takeover_data():
     for bad in ({"ratio": 0}, {"ratio": 1.5}, {"min_steps": 10, "max_steps": 5}, {"steps": 0}, {"tolerance": 1}):
         with pytest.raises(ValueError):
             FinetuneConfig(**bad)
+    with pytest.raises(ValueError, match="overlap the gate's 50000..50019"):
+        FinetuneConfig(fit_seed=50_010)
+    with pytest.raises(ValueError, match="fit_episodes"):
+        FinetuneConfig(fit_episodes=0)
+    assert FinetuneConfig(fit_seed=50_020).fit_seed == 50_020  # right after the gate's seeds
+
+
+def _fit_signal(policy, threshold=4.0):
+    from policy.signals import make_signal
+
+    signal = make_signal("spread-stall", policy, {"num_samples": 4, "spread_patience": 2})
+    signal.calibration = {
+        "threshold": 1.0,
+        "spread": {"threshold": threshold, "spread_scale": 1.0},
+        "stall": {"threshold": 0.5, "stride": 0.01},
+    }
+    return signal
+
+
+def test_fitting_on_own_episodes_needs_successes_and_leaves_the_threshold_without_them():
+    """Real rollouts of a policy that never lifts the cube: each step's score is kept, and nothing is fitted."""
+    from policy.finetune import fit_threshold_on_own_episodes
+
+    policy = tiny_policy()
+    signal = _fit_signal(policy)
+    evidence = fit_threshold_on_own_episodes(
+        policy, signal, "spread-stall", ["lift-cube"], "familiar", 2, 60_000, progress=False
+    )
+    assert evidence["successes"] == 0 and evidence["factor"] is None and "fewer than" in evidence["why"]
+    assert signal.calibration["spread"]["threshold"] == 4.0
+
+
+def test_fitting_on_own_episodes_raises_the_threshold_to_the_most_doubtful_successful_episode(monkeypatch):
+    """The rollouts stand in for a policy that lifts the cube (no tiny policy does in a test's time)."""
+    import policy.evaluate
+    from policy.evaluate import PolicyEpisode
+    from policy.finetune import MIN_FIT_SUCCESSES, fit_threshold_on_own_episodes
+
+    levels = [0.5] * MIN_FIT_SUCCESSES + [1.1, 1.3]  # the last two over the threshold of 1
+
+    def rollouts(policy, task, seeds, n_envs, progress, signals):
+        eps = [PolicyEpisode(task, s, True, 3, {}) for s in seeds]
+        for ep, level in zip(eps, [*levels, 9.0], strict=False):
+            ep.signal_scores = [{"spread-stall": v} for v in (0.1, level, level, 0.1)]
+        eps[-1].success = False  # a failed episode's doubt is the operator's business: not fitted on
+        return eps, {}
+
+    monkeypatch.setattr(policy.evaluate, "rollout_policy", rollouts)
+    signal = _fit_signal(tiny_policy())
+    n = len(levels) + 1
+    evidence = fit_threshold_on_own_episodes(
+        signal.policy, signal, "spread-stall", ["lift-cube"], "familiar", n, 60_000, progress=False
+    )
+    assert evidence["successes"] == len(levels) and evidence["asked"] == 2
+    assert evidence["factor"] == pytest.approx(max(levels))
+    assert signal.calibration["spread"]["threshold"] == pytest.approx(4.0 * max(levels))
+    assert signal.calibration["spread"]["own_episodes"]["seed"] == 60_000
+    assert signal.calibration["stall"]["threshold"] == 0.5  # the new-scene half is fitted on other tasks
 
 
 def _data(n=40, seed=0):

@@ -30,7 +30,7 @@ from sim.registry import make_task
 from tests.helpers import finetunable_policy_folder, write_segment
 
 TASK = "lift-cube"
-TINY = FinetuneConfig(steps=12, batch_size=8, checkpoint_every=5, eval_episodes=1, min_steps=1)
+TINY = FinetuneConfig(steps=12, batch_size=8, checkpoint_every=5, eval_episodes=1, min_steps=1, fit_episodes=1)
 
 
 def _closed_segment(name: str, policy_id: int, ended_at: datetime, **kw) -> SegmentRecord:
@@ -115,6 +115,11 @@ def test_a_job_makes_a_recalibrated_evaluated_version_and_records_the_gate(store
     assert child.calibration["episodes"] == cal["episodes"] and {"spread", "spread-stall"} <= set(cal["signals"])
     for name in ("spread", "spread-stall"):
         assert (Path(child.path) / "signals" / name / "config.json").is_file()
+    # the fleet's signal fitted on the candidate's own episodes: lift-cube its familiar scene, lift-nut a new
+    # one; the tiny policy lifts nothing, so nothing is raised
+    fitted = cal["signals_fitted_on_own_episodes"]["spread-stall"]
+    assert fitted["familiar"]["tasks"] == ["lift-cube"] and fitted["new"]["tasks"] == ["lift-nut"]
+    assert fitted["new"]["seed"] == 60_000 and fitted["new"]["successes"] == 0 and fitted["new"]["factor"] is None
     # evaluated on the training task and the takeovers' task, parent on the same seeds; a gate decision
     assert set(job.evaluation["candidate"]["tasks"]) == {"lift-cube", "lift-nut"}
     assert job.evaluation["parent"]["seed"] == job.evaluation["candidate"]["seed"]

@@ -25,7 +25,7 @@ def service(tmp_path_factory):
         control_hz=20,
         console=False,
         policy_poll_seconds=0.2,
-        finetune=FinetuneSettings(schedule=None, eval_episodes=1, niceness=0),
+        finetune=FinetuneSettings(schedule=None, eval_episodes=1, fit_episodes=1, niceness=0),
     )
     migrate(settings.db_url)
     sessions = session_factory(make_engine(settings.db_url))

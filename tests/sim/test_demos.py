@@ -33,6 +33,20 @@ def test_a_recorded_folder_says_how_to_record_it_again_and_is_recorded_again_see
     assert not any(p.name.endswith(".recording") for p in tmp_path.iterdir())  # no staging folder is left
 
 
+def test_recording_in_two_processes_gives_the_episodes_one_process_gives(tmp_path):
+    recipe = DemoRecipe("lift-cube", 3, seed=11, pos_noise=0.01, rot_noise=0.15)
+    one = ensure_demos(recipe, tmp_path / "one", progress=False)
+    two = ensure_demos(recipe, tmp_path / "two", progress=False, workers=2)
+    assert [p.name for p in two] == [p.name for p in one]
+    for a, b in zip(one, two, strict=True):
+        ea, eb = read_episode(a), read_episode(b)
+        np.testing.assert_array_equal(ea.obs, eb.obs)
+        np.testing.assert_array_equal(ea.actions, eb.actions)
+    assert read_recipe(tmp_path / "two") == recipe
+    with pytest.raises(ValueError, match="workers"):
+        ensure_demos(recipe, tmp_path / "three", progress=False, workers=0)
+
+
 def test_a_fresh_folder_is_recorded_whole_and_a_mixed_folder_keeps_no_recipe(tmp_path):
     out = tmp_path / "fresh" / "lift"
     recipe = DemoRecipe("lift-cube", 1, seed=5)

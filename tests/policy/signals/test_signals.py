@@ -381,6 +381,36 @@ def test_spread_novelty_counts_only_what_lies_outside_the_training_range(tiny):
     np.testing.assert_allclose(observation_novelty(normalized).numpy(), [0.0, (0.5 + 0.5) / 4])
 
 
+def test_spread_measures_novelty_against_the_demonstrations_it_was_calibrated_on(tiny):
+    """The calibration records the training demonstrations' box; a policy fitted on them gives the same
+    novelty against its normalizer. Widening the normalizer to unseen observations (as fine-tuning on
+    takeovers does) leaves them new to the signal, and a saved calibration keeps the box."""
+    import copy
+
+    from policy.signals.spread import novelty_against
+
+    policy, data = tiny
+    signal = make_signal("spread", policy, FAST["spread"])
+    record = signal.calibrate(data)
+    box = record["novelty_range"]
+    np.testing.assert_allclose(box["low"], policy.obs_normalizer.low.numpy(), rtol=1e-6)
+    np.testing.assert_allclose(box["span"], policy.obs_normalizer.span.numpy(), rtol=1e-6)
+    unseen = torch.as_tensor(data.val.obs[:3]) + torch.tensor([2.0, 0.0, 0.0, 0.0])  # one dimension 2 units out
+    before = novelty_against(policy, unseen, None).numpy()
+    assert (before > 0.2).all()
+    widened = copy.deepcopy(policy)
+    assert widened.widen_obs_range(unseen.numpy()) == 1
+    assert np.allclose(novelty_against(widened, unseen, None).numpy(), 0.0)  # the network's range now covers it
+    np.testing.assert_allclose(novelty_against(widened, unseen, box).numpy(), before, rtol=1e-5)
+    child = make_signal("spread", widened, FAST["spread"])
+    child.calibration = json.loads(json.dumps(record))  # as saved and loaded
+    action = torch.as_tensor(data.val.action[:3])
+    scored = child.score(SignalInput(unseen, torch.as_tensor(data.val.current[:3]), np.arange(3), action=action))
+    np.testing.assert_allclose(scored.parts["novelty"], before, rtol=1e-5)
+    with pytest.raises(SignalError, match="novelty_range"):
+        novelty_against(policy, unseen, {"low": [0.0], "span": [1.0]})
+
+
 def test_spread_draws_each_robots_noise_from_its_own_stream(tiny):
     """A robot's score does not depend on which robots share its batch, or where it sits in it."""
     policy, data = tiny

@@ -24,7 +24,7 @@ def _signal(monkeypatch, **config):
     signal = make_signal("spread-stall", tiny_policy(), SpreadStallConfig(patience=2, **config))
     signal.calibration = {k: dict(v) if isinstance(v, dict) else v for k, v in CALIBRATION.items()}
     field = {"spread": np.zeros(1), "novelty": np.zeros(1)}
-    monkeypatch.setattr(signal.spread, "parts", lambda batch: {k: v.copy() for k, v in field.items()})
+    monkeypatch.setattr(signal.spread, "parts", lambda batch, box=None: {k: v.copy() for k, v in field.items()})
 
     def step(spread, novelty, motion, teleop=False):
         field["spread"][:], field["novelty"][:] = spread, novelty
@@ -165,3 +165,35 @@ def test_spread_patience_asks_after_that_many_steps_in_a_row(monkeypatch):
     assert step(spread=6.0, novelty=0.0, motion=0.02)[1]  # two in a row
     signal.reset([0])
     assert not step(spread=6.0, novelty=0.0, motion=0.02)[1]  # the count restarts with the episode
+
+
+def test_an_episodes_level_is_what_patience_consecutive_steps_all_reach(monkeypatch):
+    """Raising the asking half's threshold to an episode's level is exactly what keeps it from asking;
+    the other half's threshold stays."""
+    signal, step = _signal(monkeypatch, spread_patience=2)  # stall's patience: 2 as well (``_signal``)
+    scores = [0.5, 1.6, 1.2, 0.3, 1.9, 0.2]  # the score over the threshold of 1, one per step
+    assert signal.episode_level(np.asarray(scores), "familiar") == pytest.approx(1.2)  # steps 2-3 reach 1.2
+    assert signal.episode_level(np.asarray([5.0]), "familiar") == 0.0  # shorter than the patience: never asks
+    # spread's calibrated threshold is 4: raw spreads 4x the scores; the episode asks at its third step
+    asked = [step(spread=4 * s, novelty=0.0, motion=0.02)[1] for s in scores]
+    assert asked[2]
+    signal.reset([0])
+    signal.scale_threshold("familiar", 1.2, {"tasks": ["lift-cube"]})
+    assert signal.calibration["spread"]["threshold"] == pytest.approx(4.8)
+    assert signal.calibration["spread"]["demonstrations_threshold"] == 4.0
+    assert signal.calibration["spread"]["own_episodes"] == {"tasks": ["lift-cube"], "factor": 1.2}
+    assert signal.calibration["stall"]["threshold"] == 0.5
+    assert not any(step(spread=4 * s, novelty=0.0, motion=0.02)[1] for s in scores)
+    # a new scene: stall asks after 2 steps standing still (stillness 1 = 2x its threshold of 0.5)
+    signal.reset([0])
+    assert [step(spread=0.0, novelty=0.5, motion=0.0)[1] for _ in range(2)] == [False, True]
+    signal.scale_threshold("new", 2.5, {"tasks": ["lift-hammer"]})
+    assert signal.calibration["stall"]["threshold"] == pytest.approx(1.25)
+    assert signal.calibration["spread"]["threshold"] == pytest.approx(4.8)
+    signal.reset([0])
+    assert not any(step(spread=0.0, novelty=0.5, motion=0.0)[1] for _ in range(4))
+    for bad in (0.9, float("nan"), "2"):
+        with pytest.raises(SignalError, match="only be raised"):
+            signal.scale_threshold("familiar", bad, {})
+    with pytest.raises(SignalError, match="scene must be one of"):
+        signal.episode_level(np.zeros(3), "kitchen")
