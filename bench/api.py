@@ -39,6 +39,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import tempfile
 import threading
 import time
@@ -49,6 +50,7 @@ from bench.harness import (
     ClientProcess,
     LocalService,
     Window,
+    _LogCount,
     dist,
     fresh_database,
     measure,
@@ -285,20 +287,40 @@ def _drill(fleet, robot_ids: list[int], stop: threading.Event) -> None:
                     fleet.request_help(rid, "bench api")
 
 
-def _under_load(svc, plan: dict, tokens: dict, seconds: float, bar) -> tuple[dict, dict]:
+def _under_load(fleet, url: str, api_pids: list[int], plan: dict, tokens: dict, seconds: float, bar):
     """Starts the client process and measures the fleet while it runs."""
-    fleet = svc.app.state.fleet
     stop = threading.Event()
     owned = list(range(plan["websocket_streams"] + plan["queue_cyclers"]))
     threading.Thread(target=_drill, args=(fleet, owned, stop), name="bench-drill", daemon=True).start()
-    p = {**plan, **tokens, "url": svc.url, "seconds": seconds, "robots": len(fleet.robots)}
+    p = {**plan, **tokens, "url": url, "seconds": seconds, "robots": len(fleet.robots)}
     try:
         with ClientProcess(_client_process, p, "the client process") as clients:
             clients.go()
-            load = measure(Window(fleet, clients.pid), seconds, bar)
+            load = measure(Window(fleet, clients.pid, api_pids), seconds, bar)
             return load, clients.result(timeout=seconds + 2 * TIMEOUT_S + 30)
     finally:
         stop.set()
+
+
+@contextlib.contextmanager
+def _service(settings, api_workers: int, tmp: Path):
+    """(the fleet, the URL, the API processes' pids, the server log) of the service under test."""
+    if not api_workers:
+        with LocalService(settings, tmp / "server.log") as svc:
+            yield svc.app.state.fleet, svc.url, [], svc.log
+        return
+    from service.replicas import ReplicatedService
+
+    settings = settings.model_copy(update={"port": 0})
+    log, runtime_log = _LogCount(tmp / "runtime.log"), logging.getLogger("hitl")  # the API processes: api.log
+    runtime_log.addHandler(log)
+    try:
+        with ReplicatedService(settings, api_workers, log_file=tmp / "api.log") as svc:
+            svc.wait_ready()
+            yield svc.fleet, svc.urls[0], svc.replicas.pids(), log
+    finally:
+        runtime_log.removeHandler(log)
+        log.close()
 
 
 def bench_api(
@@ -312,8 +334,11 @@ def bench_api(
     control_hz: float = 10.0,
     poll_hz: float = 5.0,
     command_hz: float = 30.0,
+    api_workers: int = 0,
     progress: bool = True,
 ) -> dict:
+    """api_workers: 0, the API in the fleet runtime's process (``LocalService``); N, in N processes of its
+    own (``service.replicas.ReplicatedService``), the runtime staying in this one."""
     from server.auth import create_token
     from server.settings import RobotGroup, Settings
 
@@ -337,16 +362,17 @@ def bench_api(
         engine.dispose()
         bar = seconds_bar(idle_seconds + seconds, "bench api", progress)
         try:
-            with LocalService(settings, Path(tmp) / "server.log") as svc:
-                wait_stepping(svc.app.state.fleet)
+            with _service(settings, api_workers, Path(tmp)) as (fleet, url, api_pids, svc_log):
+                wait_stepping(fleet)
                 time.sleep(2.0)  # warm-up
-                idle = measure(Window(svc.app.state.fleet), idle_seconds, bar)
-                load, clients_result = _under_load(svc, plan, tokens, seconds, bar)
-            log = {"warnings": svc.log.warnings, "first": svc.log.first}
+                idle = measure(Window(fleet, api_pids=api_pids), idle_seconds, bar)
+                load, clients_result = _under_load(fleet, url, api_pids, plan, tokens, seconds, bar)
+            log = {"warnings": svc_log.warnings, "first": svc_log.first}
         finally:
             bar.close()
     config = {"robots": robots, "clients": clients, "seconds": seconds, "idle_seconds": idle_seconds, "task": task}
     config.update(worker=worker, control_hz=control_hz, assistance=False, trigger_mode="continuous")
+    config.update(api_workers=api_workers)
     return _report(config, plan, idle, load, clients_result, log)
 
 

@@ -134,9 +134,11 @@ class Window:
     """The fleet's control rate over a measurement window (drained every second under the fleet lock), and
     where the machine's CPU went: this machine may be shared, and the report says how busy it was."""
 
-    def __init__(self, fleet, client_pid: int | None = None) -> None:
+    def __init__(self, fleet, client_pid: int | None = None, api_pids: list[int] = ()) -> None:
+        """api_pids: the API processes of a service whose API runs apart from its runtime (this process)."""
         self.fleet = fleet
         self.pids = {"server_process": os.getpid()} | ({"client_process": client_pid} if client_pid else {})
+        self.pids |= {f"api_process_{i}": pid for i, pid in enumerate(api_pids)}
         self.pids |= worker_pids(fleet.robots.values())
 
     def start(self) -> None:
@@ -183,9 +185,12 @@ class Window:
         out = {"machine_cores": os.cpu_count(), "machine_busy": used.pop("machine", None)}
         out["server_process"] = used.pop("server_process", None)
         out["client_process"] = used.pop("client_process", None)
+        api = [used.pop(k) for k in sorted(used) if k.startswith("api_process_")]
+        if api:
+            out["api_processes"] = sum(api)
         out["robot_workers"] = sum(used.values())
         if out["machine_busy"] is not None:
-            ours = out["robot_workers"] + (out["server_process"] or 0) + (out["client_process"] or 0)
+            ours = out["robot_workers"] + (out["server_process"] or 0) + (out["client_process"] or 0) + sum(api)
             out["other_processes"] = max(0.0, out["machine_busy"] - ours)
         return out
 

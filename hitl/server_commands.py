@@ -10,7 +10,10 @@ from pathlib import Path
 def _settings(args: argparse.Namespace):
     from server.settings import Settings
 
-    overrides = {k: v for k, v in (("host", getattr(args, "host", None)), ("port", getattr(args, "port", None))) if v}
+    given = (("host", getattr(args, "host", None)), ("port", getattr(args, "port", None)))
+    overrides = {k: v for k, v in given if v}
+    if getattr(args, "api_workers", None) is not None:
+        overrides["api_workers"] = args.api_workers
     return Settings.load(args.config, **overrides)
 
 
@@ -25,6 +28,10 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.log_level == "debug":
         logging.getLogger("hitl").setLevel(logging.DEBUG)
+    if settings.api_workers:  # the API in processes of its own, the fleet runtime in this one
+        from service.replicas import serve
+
+        return serve(settings, settings.api_workers, args.log_level)
     app = create_app(settings)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level, log_config=None)
     server = uvicorn.Server(config)
@@ -132,6 +139,8 @@ def _cmd_bench_api(args: argparse.Namespace) -> int:
         raise ValueError("--seconds and --idle-seconds must be positive")
     if not (0 < args.poll_hz <= 1000 and 0 < args.command_hz <= 1000):
         raise ValueError("--poll-hz and --command-hz must be in (0, 1000]")
+    if not 0 <= args.api_workers <= 64:
+        raise ValueError(f"--api-workers must be in 0..64, got {args.api_workers}")
     result = bench_api(
         robots=args.robots,
         clients=args.clients,
@@ -142,6 +151,7 @@ def _cmd_bench_api(args: argparse.Namespace) -> int:
         control_hz=args.control_hz,
         poll_hz=args.poll_hz,
         command_hz=args.command_hz,
+        api_workers=args.api_workers,
         progress=not args.quiet,
     )
     print(json.dumps(result, indent=None if args.json else 2))
@@ -231,6 +241,13 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--port", type=int, default=None)
     p.add_argument("--config", type=Path, default=None, help="TOML settings file (HITL_* variables override it)")
     p.add_argument(
+        "--api-workers",
+        type=int,
+        default=None,
+        help="serve the API and console from N processes of their own; the fleet runtime stays in this one "
+        "(the settings' api_workers; 0: one process for all)",
+    )
+    p.add_argument(
         "--log-level",
         choices=["debug", "info", "warning"],
         default="info",
@@ -291,6 +308,12 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--control-hz", type=float, default=10.0)
     q.add_argument("--poll-hz", type=float, default=5.0, help="requests per second of each REST poller")
     q.add_argument("--command-hz", type=float, default=30.0, help="commands per second of each WebSocket stream")
+    q.add_argument(
+        "--api-workers",
+        type=int,
+        default=0,
+        help="0: the API in the fleet runtime's process; N: in N processes of its own (the service's api_workers)",
+    )
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_api)

@@ -18,12 +18,14 @@ from __future__ import annotations
 import asyncio
 import importlib.resources
 import logging
+import os
 import re
 from collections.abc import Sequence
 from contextlib import asynccontextmanager
 from typing import Protocol
 
 from fastapi import APIRouter, FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
@@ -32,11 +34,13 @@ from fastapi.staticfiles import StaticFiles
 from server.api import assistance, finetune, policies, records, robots, system, ws_messages
 from server.api.schemas import ErrorOut, FieldError
 from server.auth import TokenCache
-from server.db import make_engine, migrate, session_factory
+from server.db import make_engine, session_factory
 from server.errors import ServiceError
-from server.fleet import Fleet
-from server.recording import recover
-from server.scheduler import FileClock, JobLauncher, Scheduler, local_now
+from server.port import FleetPort
+from server.runtime.client import RemoteFleet
+from server.runtime.local import FleetRuntime
+from server.runtime.wire import RuntimeLink
+from server.scheduler import JobLauncher, ScheduleStatus
 from server.settings import Settings
 
 log = logging.getLogger("hitl.server")
@@ -98,7 +102,13 @@ def install_log_filters() -> None:
                 logger.addFilter(kind())
 
 
-def fleet_ready(fleet: Fleet | None) -> bool:
+def _replica_schedule(fleet: RemoteFleet, launcher: JobLauncher) -> ScheduleStatus:
+    """An API replica's schedule: the runtime's (it runs the scheduler), with the jobs this replica started."""
+    status = fleet.schedule_status() or ScheduleStatus.of(None, launcher)
+    return status.with_launcher(launcher)
+
+
+def fleet_ready(fleet: FleetPort | None) -> bool:
     """What ``/readyz`` answers: the control loop has ticked (some robot's first frame arrived and was stepped)."""
     return fleet is not None and fleet.ticks > 0
 
@@ -117,7 +127,7 @@ def base_url(app: FastAPI) -> str:
 
 
 def ready_line(app: FastAPI) -> str:
-    base, n = base_url(app), len(app.state.fleet.robots)
+    base, n = base_url(app), len(app.state.fleet.views())
     console = f"console at {base}{CONSOLE_PATH}" if app.state.settings.console else "console off"
     return f"ready: {n} robot{'s' if n != 1 else ''}, {console}, docs at {base}{DOCS_PATH}"
 
@@ -180,63 +190,54 @@ class ServiceExtension(Protocol):
 
     router: APIRouter
 
-    def start(self, app: FastAPI, fleet: Fleet) -> None: ...
+    def start(self, app: FastAPI, fleet: FleetPort) -> None: ...
 
     def stop(self, app: FastAPI) -> None: ...
 
 
-def create_app(settings: Settings, extensions: Sequence[ServiceExtension] = ()) -> FastAPI:
+def create_app(
+    settings: Settings, extensions: Sequence[ServiceExtension] = (), link: RuntimeLink | None = None
+) -> FastAPI:
     """The REST service on ``settings``, with ``extensions`` mounted (``service.app.create_app`` adds the
-    console)."""
+    console). ``link``: the fleet runtime runs in another process, reached there (an API replica,
+    ``service.replicas``); None: this app runs the runtime (``server.runtime.local``)."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         install_log_filters()
-        settings.data_dir.mkdir(parents=True, exist_ok=True)
-        url = settings.db_url
-        migrate(url)
-        engine = make_engine(url)
-        sessions = session_factory(engine)
-        found = recover(sessions, settings.data_dir)  # before any robot runs
-        if found.segments or found.episodes:
-            log.info(
-                "after a crash: %d takeover segment(s) rewritten as complete MCAP files, %d episode(s) closed as "
-                "interrupted (%d file(s) unreadable)",
-                found.segments,
-                found.episodes,
-                found.unreadable,
-            )
-        fleet = Fleet(settings, sessions)
-        app.state.settings, app.state.sessions, app.state.fleet = settings, sessions, fleet
+        app.state.settings = settings
+        if link is None:  # the fleet runtime in this process
+            runtime = FleetRuntime(settings).open()
+            fleet, sessions, launcher = runtime.fleet, runtime.sessions, runtime.launcher
+            app.state.schedule_status = runtime.schedule_status
+        else:  # an API process of a runtime elsewhere (service.replicas)
+            runtime = None
+            engine = make_engine(settings.db_url)
+            sessions = session_factory(engine)
+            launcher = JobLauncher(settings.data_dir, settings.db_url, settings.finetune)  # jobs started here
+            fleet = RemoteFleet(settings, link.address, link.authkey, sessions, who=f"api-{os.getpid()}")
+            await run_in_threadpool(fleet.start)
+            app.state.schedule_status = lambda: _replica_schedule(fleet, launcher)
+        app.state.sessions, app.state.fleet, app.state.launcher = sessions, fleet, launcher
         app.state.tokens = TokenCache(sessions)
         for extension in extensions:
             extension.start(app, fleet)
-        fleet.start()
-        log.info("fleet of %d robot(s) started; ready once its control loop has ticked", len(fleet.robots))
-        app.state.launcher = JobLauncher(settings.data_dir, url, settings.finetune)
-        app.state.scheduler = None
-        if settings.finetune.schedule:
-            clock_file = settings.finetune.clock_file  # a benchmark's night, else the system clock
-            app.state.scheduler = Scheduler(
-                settings.finetune.schedule,
-                lambda due: app.state.launcher.launch("schedule"),
-                clock=FileClock(clock_file) if clock_file is not None else local_now,
-                poll=1.0 if clock_file is not None else 30.0,
-            )
-            app.state.scheduler.start()
+        if runtime is not None:
+            runtime.start()
         announcer = asyncio.create_task(announce_ready(app))
         try:
             yield
         finally:
             announcer.cancel()
             await asyncio.gather(announcer, return_exceptions=True)
-            if app.state.scheduler is not None:
-                app.state.scheduler.stop()
-            app.state.launcher.stop()  # a job in progress records itself interrupted and resumes next time
             for extension in reversed(extensions):
                 extension.stop(app)
-            fleet.stop()
-            engine.dispose()
+            if runtime is not None:
+                runtime.stop()
+            else:
+                launcher.stop()
+                fleet.stop()
+                engine.dispose()
 
     app = FastAPI(
         title="hitl fleet service",

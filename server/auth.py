@@ -62,10 +62,13 @@ def revoke_token(sessions: sessionmaker, name: str) -> bool:
 
 
 def authenticate(sessions: sessionmaker, token: str | None) -> Principal | None:
-    if not token:
-        return None
+    return authenticate_hash(sessions, hash_token(token)) if token else None
+
+
+def authenticate_hash(sessions: sessionmaker, token_hash: str) -> Principal | None:
+    """The principal of the unrevoked token with this hash (a console session keeps only the hash)."""
     with sessions() as s:
-        row = s.scalar(select(ApiToken).where(ApiToken.token_hash == hash_token(token), ApiToken.revoked.is_(False)))
+        row = s.scalar(select(ApiToken).where(ApiToken.token_hash == token_hash, ApiToken.revoked.is_(False)))
         return Principal(row.name, row.role) if row else None
 
 
@@ -83,9 +86,9 @@ class TokenCache:
     def cached(self, token: str | None) -> tuple[bool, Principal | None]:
         """(known, principal) without touching the database: known is False when ``authenticate`` must
         ask it."""
-        if not token:
-            return True, None
-        key = hash_token(token)
+        return self.cached_hash(hash_token(token)) if token else (True, None)
+
+    def cached_hash(self, key: str) -> tuple[bool, Principal | None]:
         with self._lock:
             hit = self._seen.get(key)
             if hit is None or time.monotonic() - hit[0] >= self.ttl:
@@ -95,11 +98,14 @@ class TokenCache:
 
     def authenticate(self, token: str | None) -> Principal | None:
         """Asks the database (blocking) and remembers a valid token's principal."""
-        principal = authenticate(self.sessions, token)
+        return self.authenticate_hash(hash_token(token)) if token else None
+
+    def authenticate_hash(self, key: str) -> Principal | None:
+        principal = authenticate_hash(self.sessions, key)
         if principal is not None:
             with self._lock:
-                self._seen[hash_token(token)] = (time.monotonic(), principal)
-                self._seen.move_to_end(hash_token(token))
+                self._seen[key] = (time.monotonic(), principal)
+                self._seen.move_to_end(key)
                 while len(self._seen) > self.max_entries:
                     self._seen.popitem(last=False)
         return principal

@@ -218,6 +218,18 @@ class JobLease(Base):
     expires_at: Mapped[float] = mapped_column(Float, default=0.0)
 
 
+class ConsoleSession(Base):
+    """An operator console log-in shared by every API process (``web.sessions.SharedConsoleSessions``):
+    the SHA-256 of the cookie's session id, the hash of the API token it was opened with (re-checked at
+    every use, so a revocation applies), and when it was opened (seconds since the epoch, the
+    database's clock)."""
+
+    __tablename__ = "console_sessions"
+    sid_hash: Mapped[str] = mapped_column(String(64), primary_key=True)
+    token_hash: Mapped[str] = mapped_column(String(64))
+    opened_at: Mapped[float] = mapped_column(Float)
+
+
 def _sqlite_dir(url: str) -> None:
     if url.startswith("sqlite:///"):
         Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)

@@ -120,6 +120,11 @@ class Fleet(ControlLoop, OperatorMethods):
     def data_dir(self) -> Path:
         return self.settings.data_dir
 
+    @property
+    def remote(self) -> bool:
+        """The fleet runs in this process: its calls never cross to another."""
+        return False
+
     # -- policy versions (``server.policy_swap``) ----------------------------------------------------------
     def register_policy(self, path: Path, task: str | None = None, parent: int | None = None) -> int:
         """Adds a policy folder as a ``candidate`` version (idempotent by path); returns its id."""

@@ -8,8 +8,8 @@ every call below is already one that never waits for a tick in progress, or one 
 rarely (pause, resume, reset, policies). ``tests/server/test_port.py`` checks that nothing in
 ``server.api`` or ``web`` reaches past it.
 
-What crosses it today is in-process: ``RobotView`` holds the robot's policy slot and numpy arrays,
-and a runtime elsewhere needs a serializable form of it.
+``server.runtime`` is that runtime elsewhere: ``RemoteFleet`` implements the port in an API process,
+from the snapshots the runtime publishes and calls on its connections (``server.runtime.host``).
 """
 
 from __future__ import annotations
@@ -27,6 +27,12 @@ class FleetPort(Protocol):
     @property
     def ticks(self) -> int:
         """Control ticks that stepped a robot since the start (0: not serving yet)."""
+        ...
+
+    @property
+    def remote(self) -> bool:
+        """True when each call crosses to a runtime in another process (``server.runtime.client``): the
+        async routes then make their calls from the threadpool (``server.api.deps.call_port``)."""
         ...
 
     @property

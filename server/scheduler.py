@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
 
@@ -205,3 +206,35 @@ class JobLauncher:
                 except subprocess.TimeoutExpired:
                     self.process.kill()
                     self.process.wait()
+
+
+@dataclass(frozen=True)
+class ScheduleStatus:
+    """The nightly job's schedule and the job processes a service started (``GET /finetune-schedule``)."""
+
+    schedule: str | None
+    next_run: datetime | None
+    clock: str
+    running: bool
+    launches: int
+    last_exit_code: int | None
+
+    @classmethod
+    def of(cls, scheduler: Scheduler | None, launcher: JobLauncher) -> ScheduleStatus:
+        return cls(
+            schedule=scheduler.expr if scheduler is not None else None,
+            next_run=scheduler.next_due if scheduler is not None else None,
+            clock="file" if launcher.settings.clock_file is not None else "system",
+            running=launcher.running(),
+            launches=launcher.launches,
+            last_exit_code=launcher.last_exit_code,
+        )
+
+    def with_launcher(self, launcher: JobLauncher) -> ScheduleStatus:
+        """This status (the runtime's) with the jobs ``launcher`` (an API process's) started added."""
+        return replace(
+            self,
+            running=self.running or launcher.running(),
+            launches=self.launches + launcher.launches,
+            last_exit_code=launcher.last_exit_code if launcher.last_exit_code is not None else self.last_exit_code,
+        )

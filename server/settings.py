@@ -182,6 +182,13 @@ class Settings(BaseSettings):
         "once, whatever its signal says (unset: only the signal asks)",
     )
     lease_seconds: float = Field(10.0, gt=0, le=3600)
+    api_workers: int = Field(
+        0,
+        ge=0,
+        le=64,
+        description="0: the API and the console run in the fleet runtime's process; N: in N processes of their own, "
+        "which reach the runtime through a local socket and share the database (docs/architecture.md)",
+    )
     console: bool = Field(
         True,
         description="serve the operator console at /console/ (its viser server listens on an internal "

@@ -10,9 +10,11 @@ from __future__ import annotations
 from fastapi import FastAPI
 
 from server.app import create_app as create_service
+from server.runtime.wire import RuntimeLink
 from server.settings import Settings
 from web.extension import ConsoleExtension
 
 
-def create_app(settings: Settings) -> FastAPI:
-    return create_service(settings, extensions=[ConsoleExtension()])
+def create_app(settings: Settings, link: RuntimeLink | None = None) -> FastAPI:
+    """``link``: an API process of a fleet runtime that runs elsewhere (``service.replicas``)."""
+    return create_service(settings, extensions=[ConsoleExtension()], link=link)

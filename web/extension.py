@@ -9,18 +9,20 @@ from fastapi import FastAPI
 from server.port import FleetPort
 from web import pages
 from web.console import Console
-from web.sessions import ConsoleSessions
+from web.sessions import ConsoleSessions, SharedConsoleSessions
 
 
 class ConsoleExtension:
-    """``app.state.console_sessions`` always (the log-in pages answer even with the console off) and
+    """``app.state.console_sessions`` always (the log-in pages answer even with the console off; in the
+    database when the API runs apart from the runtime) and
     ``app.state.console``: the running ``Console``, or None when ``settings.console`` is off."""
 
     router = pages.router
 
     def start(self, app: FastAPI, fleet: FleetPort) -> None:
         settings = app.state.settings
-        app.state.console_sessions = ConsoleSessions()
+        # API processes apart from the runtime share log-ins through the database (web.sessions)
+        app.state.console_sessions = SharedConsoleSessions(app.state.sessions) if fleet.remote else ConsoleSessions()
         app.state.console = None
         if settings.console:
             app.state.console = Console(fleet, settings.control_hz)

@@ -19,10 +19,11 @@ import html
 from urllib.parse import parse_qs
 
 from fastapi import APIRouter, Request, WebSocket, status
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
 from starlette.requests import HTTPConnection
 
-from server.api.deps import lookup_principal
+from server.api.deps import lookup_principal, lookup_token_hash
 from web.proxy import relay
 from web.sessions import COOKIE, COOKIE_PATH, MAX_AGE_S
 from web.viser_internals import CLIENT_QUERY_PARAMS, SUBPROTOCOL, client_page
@@ -47,7 +48,7 @@ def same_origin(conn: HTTPConnection) -> bool:
 
 async def session_principal(app, sid: str | None):
     """The principal behind a console session id, or None (no session, logged out, token revoked)."""
-    return await lookup_principal(app, app.state.console_sessions.token(sid))
+    return await lookup_token_hash(app, await run_in_threadpool(app.state.console_sessions.token_hash, sid))
 
 
 async def console_principal(conn: HTTPConnection):
@@ -103,7 +104,7 @@ async def login(request: Request) -> Response:
     response = RedirectResponse(PAGE, status.HTTP_303_SEE_OTHER)
     response.set_cookie(
         COOKIE,
-        request.app.state.console_sessions.open(token),
+        await run_in_threadpool(request.app.state.console_sessions.open, token),
         max_age=int(MAX_AGE_S),
         path=COOKIE_PATH,
         httponly=True,
@@ -117,7 +118,7 @@ async def login(request: Request) -> Response:
 async def logout(request: Request) -> Response:
     if not same_origin(request):
         return _login_page("Log-out from another site was refused.", status.HTTP_403_FORBIDDEN)
-    request.app.state.console_sessions.close(request.cookies.get(COOKIE))
+    await run_in_threadpool(request.app.state.console_sessions.close, request.cookies.get(COOKIE))
     response = RedirectResponse(LOGIN, status.HTTP_303_SEE_OTHER)
     response.delete_cookie(COOKIE, path=COOKIE_PATH, httponly=True, samesite="strict")
     return response

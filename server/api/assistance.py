@@ -10,7 +10,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
-from server.api.deps import FleetDep, Operator, Viewer, websocket_principal
+from server.api.deps import FleetDep, Operator, Viewer, call_port, websocket_principal
 from server.api.responses import AUTH, BODY, errors
 from server.api.robots import detail, summary
 from server.api.schemas import AssistanceRequestOut, CommandAccepted, Id, RobotSummary, TeleopCommandIn
@@ -65,18 +65,18 @@ _HOLDER = errors(
 async def claim(robot_id: Id, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
     """Take control of a robot that asked for help: a lease, renewed by heartbeats. The robot is under
     your control from the fleet's next tick; commands sent before it are applied at that tick."""
-    return _out(fleet.claim(robot_id, who.name))
+    return _out(await call_port(fleet, fleet.claim, robot_id, who.name))
 
 
 @router.post("/robots/{robot_id}/heartbeat", response_model=AssistanceRequestOut, responses=_HOLDER)
 async def heartbeat(robot_id: Id, fleet: FleetDep, who: Operator) -> AssistanceRequestOut:
-    return _out(fleet.heartbeat(robot_id, who.name))
+    return _out(await call_port(fleet, fleet.heartbeat, robot_id, who.name))
 
 
 @router.post("/robots/{robot_id}/release", response_model=RobotSummary, responses=_HOLDER)
 async def release(robot_id: Id, fleet: FleetDep, who: Operator) -> RobotSummary:
     """Hand the robot back to its policy (at the fleet's next tick; it is shown handed back at once)."""
-    fleet.release(robot_id, who.name)
+    await call_port(fleet, fleet.release, robot_id, who.name)
     return summary(fleet.view(robot_id))
 
 
@@ -100,7 +100,7 @@ async def command(robot_id: Id, body: TeleopCommandIn, fleet: FleetDep, who: Ope
     changes: send it again after the next tick. ``pending`` says how many commands the next tick
     applies. 409 for a robot that is not under teleop (autonomous, waiting, paused, ...) or that another
     operator holds; 404 only for an unknown robot."""
-    pending = fleet.command(robot_id, who.name, body.to_command())
+    pending = await call_port(fleet, fleet.command, robot_id, who.name, body.to_command())
     return CommandAccepted(robot_id=robot_id, pending=pending)
 
 
@@ -147,7 +147,7 @@ async def teleop_socket(websocket: WebSocket, robot_id: int) -> None:
                 await _send(websocket, body)
                 continue
             try:
-                pending = fleet.command(robot_id, principal.name, body.to_command())
+                pending = await call_port(fleet, fleet.command, robot_id, principal.name, body.to_command())
             except ServiceError as exc:
                 await _send(websocket, TeleopErrorMessage(error=str(exc), status=exc.status))
                 continue

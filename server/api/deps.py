@@ -28,6 +28,17 @@ def get_sessions(request: Request) -> sessionmaker:
 
 
 FleetDep = Annotated[FleetPort, Depends(get_fleet)]
+
+
+async def call_port(fleet: FleetPort, method, *args):
+    """``method(*args)`` for a bound member of ``fleet``: at once when the runtime is in this process (the
+    members the async routes call never wait for a tick), from the threadpool when the call crosses to a
+    runtime in another process (``fleet.remote``), so the event loop never waits on its socket."""
+    if fleet.remote:
+        return await run_in_threadpool(method, *args)
+    return method(*args)
+
+
 SessionsDep = Annotated[sessionmaker, Depends(get_sessions)]
 
 
@@ -40,6 +51,14 @@ async def _lookup(cache: TokenCache, token: str | None) -> Principal | None:
 async def lookup_principal(app, token: str | None) -> Principal | None:
     """The principal of an API token, through the app's token cache (the console's log-in uses it)."""
     return await _lookup(app.state.tokens, token)
+
+
+async def lookup_token_hash(app, token_hash: str | None) -> Principal | None:
+    """The principal of the API token with this hash (what a console session keeps), through the cache."""
+    if not token_hash:
+        return None
+    known, principal = app.state.tokens.cached_hash(token_hash)
+    return principal if known else await run_in_threadpool(app.state.tokens.authenticate_hash, token_hash)
 
 
 async def _principal(request: Request, creds: HTTPAuthorizationCredentials | None) -> Principal:

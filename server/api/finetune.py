@@ -3,6 +3,7 @@ an admin can start one (``hitl finetune`` in a separate, low-priority process)."
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -45,17 +46,10 @@ def jobs(
 
 
 @router.get("/finetune-schedule", response_model=FinetuneScheduleOut, responses=errors(AUTH))
-def schedule(request: Request, launcher: LauncherDep, _: Viewer) -> FinetuneScheduleOut:
+def schedule(request: Request, _: Viewer) -> FinetuneScheduleOut:
     """When the nightly job runs next, and whether one started by this service is running."""
-    scheduler = request.app.state.scheduler
-    return FinetuneScheduleOut(
-        schedule=scheduler.expr if scheduler is not None else None,
-        next_run=scheduler.next_due if scheduler is not None else None,
-        clock="file" if launcher.settings.clock_file is not None else "system",
-        running=launcher.running(),
-        launches=launcher.launches,
-        last_exit_code=launcher.last_exit_code,
-    )
+    status = request.app.state.schedule_status()  # server.scheduler.ScheduleStatus
+    return FinetuneScheduleOut(**dataclasses.asdict(status))
 
 
 @router.get("/finetune-jobs/{job_id}", response_model=FinetuneJobOut, responses=errors(AUTH, 404, 422))

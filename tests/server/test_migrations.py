@@ -54,7 +54,7 @@ def _columns(engine, table: str) -> set[str]:
 def test_each_migration_applies_in_turn_and_keeps_the_rows_written_before_it(empty_url):
     cfg = _config(empty_url)
     revisions = _revisions(cfg)
-    assert revisions[:4] == ["0001", "0002", "0003", "0004"]
+    assert revisions[:5] == ["0001", "0002", "0003", "0004", "0005"]
     engine = make_engine(empty_url)
     try:
         command.upgrade(cfg, "0001")
@@ -76,6 +76,8 @@ def test_each_migration_applies_in_turn_and_keeps_the_rows_written_before_it(emp
                 assert _columns(engine, "segments") == segment_columns | {"ended_by"}
             if rev == "0004":
                 assert {"finetune_jobs", "job_leases"} <= set(inspect(engine).get_table_names())
+            if rev == "0005":
+                assert "console_sessions" in set(inspect(engine).get_table_names())
     finally:
         engine.dispose()
 

@@ -179,7 +179,7 @@ def test_the_ready_line_comes_when_the_service_is_ready(service):
 def test_ready_is_announced_when_the_fleet_has_ticked_and_the_server_listens(caplog):
     app = FastAPI()
     app.state.settings = SimpleNamespace(host="0.0.0.0", port=8123, console=False)
-    app.state.fleet = SimpleNamespace(ticks=0, robots={0: None, 1: None})
+    app.state.fleet = SimpleNamespace(ticks=0, views=lambda: [None, None])  # the port's members it reads
     app.state.server = SimpleNamespace(started=False, servers=[])
 
     async def scenario():
