@@ -99,6 +99,7 @@ def fleet_throughput(
     worker: str = "process",
     robots_per_process: int = 8,
     device: str = "cpu",
+    inference: str = "local",
 ) -> dict:
     settings = Settings(
         data_dir=data_dir,
@@ -109,6 +110,7 @@ def fleet_throughput(
         worker=worker,
         robots_per_process=robots_per_process,
         device=device,
+        inference=inference,
         assistance=False,  # every other robot stays under the policy: the full per-step cost, all the time
         trigger_mode="continuous",  # with assistance off, the operator keeps robot 0 until its episode ends
     )
@@ -142,6 +144,8 @@ def fleet_throughput(
         others = {k: p for k, p in descendant_pids().items() if p not in set(pids.values())}
         overhead = getattr(fleet.worker_factory, "overhead", None)  # the ray back end's API time in the loop
         overhead0 = (overhead.seconds, overhead.calls) if overhead is not None else None
+        remote = _ray_inference(fleet)  # the inference actor's call time and its own compute time
+        remote0 = _inference_times(remote)
         workers_cpu0, others_cpu0 = processes_cpu_seconds(pids), processes_cpu_seconds(others)
         with fleet.lock:
             steps0 = fleet.env_steps
@@ -162,6 +166,7 @@ def fleet_throughput(
         others_cpu = processes_cpu_seconds(others) - others_cpu0
         if overhead is not None:
             ray_s, ray_calls = overhead.seconds - overhead0[0], overhead.calls - overhead0[1]
+        calls_s, compute_s, n_calls = (b - a for a, b in zip(remote0, _inference_times(remote), strict=True))
         server = memory_mb()
         workers = [memory_mb(pid) for pid in pids.values()]
         peaks = [w["peak_rss_mb"] for w in workers if w["peak_rss_mb"] is not None]
@@ -189,6 +194,13 @@ def fleet_throughput(
         # ray: the control loop's time in Ray's API (send, check, fetch), per tick and per call
         "ray_api_ms_per_tick": ray_s / max(ticks, 1) * 1e3 if overhead is not None else None,
         "ray_api_us_per_call": ray_s / max(ray_calls, 1) * 1e6 if overhead is not None else None,
+        # inference = "ray": one actor call per tick; its time in the loop, and the part the actor spent computing
+        "inference": inference,
+        "inference_call_ms": calls_s / n_calls * 1e3 if remote is not None and n_calls else None,
+        "inference_actor_compute_ms": compute_s / n_calls * 1e3 if remote is not None and n_calls else None,
+        "inference_ray_overhead_ms_per_tick": (calls_s - compute_s) / n_calls * 1e3
+        if remote is not None and n_calls
+        else None,
         "teleop_action_period_p50_ms": teleop_p50,
         # target: command-to-applied p99 within one control period + 20 ms. A tick moves only the
         # robots whose physics answered, so the control period is the teleoperated robot's own:
@@ -207,6 +219,20 @@ def fleet_throughput(
         "workers_rss_mb_per_robot": sum(rss) / n if rss else None,
         "workers_peak_rss_mb_per_robot": sum(peaks) / n if peaks else None,
     }
+
+
+def _ray_inference(fleet: Fleet):
+    """The fleet's Ray inference back end (one policy version here), or None when it computes locally."""
+    inference = next(iter(fleet.robots.values())).slot.controller.inference
+    return inference if hasattr(inference, "handle") else None
+
+
+def _inference_times(remote) -> tuple[float, float, int]:
+    """(seconds in calls, seconds the actor computed, calls) so far; zeros without a Ray back end."""
+    if remote is None:
+        return 0.0, 0.0, 0
+    compute, calls = remote.ray.get(remote.handle.busy.remote(), timeout=60)
+    return remote.overhead_s, compute, calls
 
 
 def _fleet_child(args: tuple, out) -> None:
@@ -241,23 +267,26 @@ def bench_fleet(
     workers: tuple[str, ...] | None = None,
     robots_per_process: int = 8,
     device: str = "cpu",
+    inference: tuple[str, ...] = ("local",),
 ) -> dict:
-    """For each size: raw physics, then the fleet on each worker back end (each in a fresh process;
-    default: every back end that runs physics in processes of its own and is installed here)."""
+    """For each size: raw physics, then the fleet on each worker back end with each inference back end
+    (each in a fresh process; default workers: every back end that runs physics in processes of its own
+    and is installed here). A row's ``backend`` names both."""
     workers = tuple(workers) if workers is not None else available_workers()
     rows = []
-    todo = [(n, w) for n in sizes for w in workers]
+    todo = [(n, w, i) for n in sizes for w in workers for i in inference]
     with tempfile.TemporaryDirectory() as tmp:
         raw = {}
-        for n, worker in tqdm(todo, desc="bench fleet", disable=not progress):
+        for n, worker, where in tqdm(todo, desc="bench fleet", disable=not progress):
             if n not in raw:
                 raw[n] = raw_throughput(task, n, seconds)
-            args = (task, n, seconds, Path(tmp) / f"n{n}-{worker}", torch_threads, command_hz)
-            fleet = _fleet_in_fresh_process(*args, worker, robots_per_process, device)
+            args = (task, n, seconds, Path(tmp) / f"n{n}-{worker}-{where}", torch_threads, command_hz)
+            fleet = _fleet_in_fresh_process(*args, worker, robots_per_process, device, where)
             p99, target = fleet["command_latency_p99_ms"], fleet["latency_target_ms"]
             rows.append(
                 {
                     "robots": n,
+                    "backend": worker if where == "local" else f"{worker}, inference on ray",
                     "raw_env_steps_per_s": raw[n],
                     **fleet,
                     "share_of_raw": fleet["env_steps_per_s"] / raw[n],
@@ -265,10 +294,10 @@ def bench_fleet(
                 }
             )
     growth = {}
-    for worker in workers:  # the server's resident memory against the fleet size: its slope per robot
-        pts = [(r["robots"], r["server_rss_mb"]) for r in rows if r["worker"] == worker and r["server_rss_mb"]]
+    for backend in dict.fromkeys(r["backend"] for r in rows):  # the server's resident memory: its slope per robot
+        pts = [(r["robots"], r["server_rss_mb"]) for r in rows if r["backend"] == backend and r["server_rss_mb"]]
         if len({n for n, _ in pts}) >= 2:
-            growth[worker] = float(np.polyfit([n for n, _ in pts], [m for _, m in pts], 1)[0])
+            growth[backend] = float(np.polyfit([n for n, _ in pts], [m for _, m in pts], 1)[0])
     return {
         "benchmark": "fleet",
         "task": task,
@@ -288,7 +317,7 @@ def fleet_goals(rows: list[dict], growth: dict[str, float]) -> dict:
     return {
         "share_of_raw_at_16": GOAL_SHARE_OF_RAW_AT_16,
         "share_of_raw_at_16_met": {
-            r["worker"]: r["share_of_raw"] >= GOAL_SHARE_OF_RAW_AT_16 for r in rows if r["robots"] == 16
+            r["backend"]: r["share_of_raw"] >= GOAL_SHARE_OF_RAW_AT_16 for r in rows if r["robots"] == 16
         },
         "server_mb_per_added_robot": GOAL_SERVER_MB_PER_ROBOT,
         "server_mb_per_added_robot_met": {w: mb < GOAL_SERVER_MB_PER_ROBOT for w, mb in growth.items()},

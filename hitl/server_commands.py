@@ -109,7 +109,8 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
         raise ValueError(f"--robots must be a comma-separated list of sizes in 1..64, got {args.robots!r}")
     if not (0 < args.command_hz <= 1000):
         raise ValueError(f"--command-hz must be in (0, 1000], got {args.command_hz!r}")
-    Settings(device=args.device, robots_per_process=args.robots_per_process)  # the settings' own validation
+    for inference in args.inference:  # the settings' own validation (inference = "ray" needs Ray installed)
+        Settings(device=args.device, robots_per_process=args.robots_per_process, inference=inference)
     check_device(args.device)  # before any process starts
     result = bench_fleet(
         args.task,
@@ -121,6 +122,7 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
         workers=tuple(args.worker) if args.worker else None,
         robots_per_process=args.robots_per_process,
         device=args.device,
+        inference=tuple(dict.fromkeys(args.inference)),
     )
     print(json.dumps(result, indent=None if args.json else 2))
     return 0
@@ -293,6 +295,13 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         help="worker back ends (default: process, pool and, where Ray is installed, ray; side by side in one run)",
     )
     q.add_argument("--robots-per-process", type=int, default=8, help="pool back end (the setting)")
+    q.add_argument(
+        "--inference",
+        nargs="+",
+        choices=["local", "ray"],
+        default=["local"],
+        help="where the policy and the signals run (the setting): each back end is measured with each",
+    )
     q.add_argument("--device", default="cpu", help="where the policy and the uncertainty run: cpu, cuda, cuda:N")
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")

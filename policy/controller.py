@@ -49,7 +49,8 @@ import numpy as np
 import torch
 
 from policy.diffusion_policy import DiffusionPolicy
-from policy.signals.base import AssistanceSignal, SignalError, SignalInput, TriggerState
+from policy.inference import Inference, InferenceRequest, InferenceUnavailable, LocalInference
+from policy.signals.base import AssistanceSignal, SignalError
 from policy.uncertainty import UncertaintyBatch, UncertaintyResult
 from sim.frame import RobotFrame
 from sim.spaces import ACTION_DIM, ActionSpace, TeleopCommand, TeleopTarget
@@ -117,7 +118,8 @@ class RobotStep:
     to the policy after this step; scores / wants: every signal's score and decision (empty when the
     robot was not scored: waiting, or under teleop without a command); uncertainty: the denoising
     field when scored; obs: (H, obs_dim) the history the policy saw; current: (10,) the probe centre's
-    raw action; command / target: the operator command applied and what it became.
+    raw action; command / target: the operator command applied and what it became; unavailable: why
+    nothing was scored (``policy.inference.InferenceUnavailable``: a robot the policy drives held).
     """
 
     robot_id: int
@@ -135,6 +137,7 @@ class RobotStep:
     current: np.ndarray | None = None
     command: TeleopCommand | None = None
     target: TeleopTarget | None = None
+    unavailable: str | None = None  # the inference back end could not answer: the policy's robots held
 
     @property
     def scored(self) -> bool:
@@ -169,7 +172,8 @@ class Controller:
 
     signals: name -> calibrated or shadow ``AssistanceSignal``; asking: the one whose decision asks
     for help and returns control (None: evaluation, nothing asks); action_space: turns operator
-    commands into absolute targets.
+    commands into absolute targets; inference: where the batched network calls run (``policy.inference``;
+    default: here, on ``policy`` and ``signals``).
     """
 
     def __init__(
@@ -179,6 +183,7 @@ class Controller:
         asking: str | None,
         action_space: ActionSpace,
         config: ControllerConfig | None = None,
+        inference: Inference | None = None,
     ) -> None:
         if asking is not None:
             if asking not in signals:
@@ -189,6 +194,7 @@ class Controller:
         self.asking = asking
         self.action_space = action_space
         self.config = config or ControllerConfig()
+        self.inference = inference if inference is not None else LocalInference(policy, self.signals)
         self._robots: dict[int, _Robot] = {}
 
     # -- robots ---------------------------------------------------------------------------------------
@@ -198,14 +204,12 @@ class Controller:
         state = np.random.SeedSequence([self.config.seed, int(seed)]).generate_state(2, np.uint32)
         g = torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
         self._robots[robot_id] = _Robot(g)
-        for signal in self.signals.values():
-            signal.reset([robot_id])
+        self.inference.reset([robot_id])
 
     def remove(self, robot_id: int) -> None:
         """Forgets a robot (it moved to another controller, or left the fleet)."""
         if self._robots.pop(robot_id, None) is not None:
-            for signal in self.signals.values():
-                signal.reset([robot_id])
+            self.inference.reset([robot_id])
 
     def __contains__(self, robot_id: int) -> bool:
         return robot_id in self._robots
@@ -320,15 +324,10 @@ class Controller:
             return WATCHDOG
         return None
 
-    def _urgent(self, state: TriggerState) -> np.ndarray:
-        """The asking signal's ``urgent`` requests (none for a duck-typed signal without the method)."""
-        urgent = getattr(self.signals[self.asking], "urgent", None)
-        return np.asarray(urgent(state), dtype=bool) if urgent is not None else np.zeros(len(state.robot_ids), bool)
-
     def _score_and_decide(
         self, ids: list[int], frames: Mapping[int, RobotFrame], out: dict[int, RobotStep], send: ActionSink | None
     ) -> None:
-        policy, cfg = self.policy, self.policy.config
+        cfg = self.policy.config
         robots = [self._robots[i] for i in ids]
         obs = torch.stack([torch.stack(list(r.history)) for r in robots])
         current = torch.as_tensor(np.stack([frames[i].hold for i in ids]), dtype=torch.float32)
@@ -336,52 +335,43 @@ class Controller:
         # a fresh chunk for robots with nothing queued (and the would-be chunk of teleoperated robots)
         need = [j for j, r in enumerate(robots) if not r.queue]
         plans = torch.empty((len(ids), cfg.action_horizon, ACTION_DIM))
-        if need:
-            noise = torch.stack(
-                [torch.randn((cfg.action_horizon, ACTION_DIM), generator=robots[j].generator) for j in need]
-            )
-            with torch.no_grad():
-                plans[need] = policy.predict_action_chunk(obs[need], noise=noise).float()
-            for j in need:
-                if not teleop[j]:
-                    robots[j].queue.extend(plans[j, : cfg.n_action_steps].numpy().astype(np.float64))
         for j, r in enumerate(robots):  # the plan a queued robot is executing, from the action it takes now
             if j not in need:
                 rest = list(r.queue)
                 rest += [rest[-1]] * (cfg.action_horizon - len(rest))
                 plans[j] = torch.as_tensor(np.stack(rest[: cfg.action_horizon]), dtype=torch.float32)
+        noise = None
+        if need:
+            noise = torch.stack(
+                [torch.randn((cfg.action_horizon, ACTION_DIM), generator=robots[j].generator) for j in need]
+            )
         operator = None
         if teleop.any():
             operator = torch.full((len(ids), ACTION_DIM), float("nan"))
             for j in np.flatnonzero(teleop):
                 operator[j] = torch.as_tensor(out[ids[j]].action, dtype=torch.float32)
-        batch = SignalInput(obs, current, np.asarray(ids), action=plans, operator_action=operator)
-        with torch.no_grad():
-            scores = {name: s.score(batch) for name, s in self.signals.items()}
-        state = TriggerState(np.asarray(ids), teleop.copy())
-        wants = {
-            name: np.asarray(s.wants_help(scores[name], state), dtype=bool)
-            for name, s in self.signals.items()
-            if s.calibration is not None
-        }
-        asking = wants.get(self.asking) if self.asking is not None and self.config.assistance else None
-        urgent = self._urgent(state) if asking is not None else None
+        asks = self.asking if self.asking is not None and self.config.assistance else None
+        request = InferenceRequest(obs, current, np.asarray(ids), need, noise, plans, teleop, operator, asks)
+        try:
+            result = self.inference.run(request)
+        except InferenceUnavailable as exc:
+            self._hold_without_inference(ids, robots, frames, out, send, teleop, str(exc))
+            return
+        for j in need:
+            if not teleop[j]:
+                robots[j].queue.extend(result.plans[j, : cfg.n_action_steps].numpy().astype(np.float64))
+        scores, wants = result.scores, result.wants
+        asking = wants.get(asks) if asks is not None else None
+        urgent = result.urgent if asking is not None else None
         calm_steps = self.config.calm_steps
         field = next((sc.detail for sc in scores.values() if isinstance(sc.detail, UncertaintyBatch)), None)
         for j, (rid, r) in enumerate(zip(ids, robots, strict=True)):
             frame = frames[rid]
             if teleop[j]:
                 step = out[rid]
-                if r.teleop_left is not None:
-                    r.teleop_left -= 1
                 if asking is not None and calm_steps is not None:
                     r.calm = r.calm + 1 if not asking[j] else 0
-                done = (r.teleop_left is not None and r.teleop_left <= 0) or (
-                    calm_steps is not None and r.calm >= calm_steps
-                )
-                if done:
-                    self.release(rid)
-                    step.returned = True
+                self._count_operator_step(rid, r, step)
             elif (
                 by := self._asks(
                     r, frame, asking is not None and bool(asking[j]), urgent is not None and bool(urgent[j])
@@ -389,8 +379,7 @@ class Controller:
             ) is not None:
                 self.ask(rid, frame.hold)
                 step = RobotStep(rid, r.hold.copy(), keys.SOURCE_HOLD, r.mode, asked=True, asked_by=by)
-                explain = getattr(self.signals.get(by), "explain", None)  # optional for duck-typed signals
-                step.why = explain(scores[by], j) if explain is not None else None
+                step.why = result.why.get(j) if by == asks else None
             else:
                 r.cooldown = max(0, r.cooldown - 1)
                 step = RobotStep(rid, r.queue.popleft(), keys.SOURCE_POLICY, r.mode)
@@ -402,3 +391,37 @@ class Controller:
             out[rid] = step
             if send is not None and not teleop[j]:
                 send(rid, step.action, step.source)
+
+    def _count_operator_step(self, rid: int, r: _Robot, step: RobotStep) -> None:
+        """An operator step: the budget counts it, and control goes back when the budget, or the calm
+        run of ``return_after``, is used up."""
+        if r.teleop_left is not None:
+            r.teleop_left -= 1
+        calm_steps = self.config.calm_steps
+        done = (r.teleop_left is not None and r.teleop_left <= 0) or (calm_steps is not None and r.calm >= calm_steps)
+        if done:
+            self.release(rid)
+            step.returned = True
+
+    def _hold_without_inference(
+        self,
+        ids: list[int],
+        robots: list[_Robot],
+        frames: Mapping[int, RobotFrame],
+        out: dict[int, RobotStep],
+        send: ActionSink | None,
+        teleop: np.ndarray,
+        why: str,
+    ) -> None:
+        """The back end could not answer: the robots the policy drives hold where they are (their
+        queues wait, nothing is scored), operators' steps count as usual."""
+        for j, (rid, r) in enumerate(zip(ids, robots, strict=True)):
+            if teleop[j]:
+                step = out[rid]
+                self._count_operator_step(rid, r, step)
+            else:
+                step = RobotStep(rid, np.asarray(frames[rid].hold, np.float64).copy(), keys.SOURCE_HOLD, r.mode)
+                if send is not None:
+                    send(rid, step.action, step.source)
+            step.mode, step.unavailable = r.mode, why
+            out[rid] = step

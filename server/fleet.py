@@ -61,6 +61,7 @@ class Fleet(ControlLoop, OperatorMethods):
         self.env_steps = 0  # actions sent to workers, all robots, since start
         self.tick_periods: deque = deque(maxlen=2000)
         self.loop_cpu_seconds = 0.0  # CPU time of the control loop's ticks
+        self.inference_holds = 0  # robot-steps held since an inference back end last failed to answer
         self.operator_busy: dict[str, float] = {}  # seconds in control, per operator
         self.operator_since: dict[str, float] = {}  # first claim, per operator
         # how robots are started (the back end); public for the benchmarks, which read its overheads
@@ -115,6 +116,9 @@ class Fleet(ControlLoop, OperatorMethods):
             for robot in self.robots.values():
                 if robot.worker is not None:
                     robot.worker.join(timeout=5)
+            served = {id(s): s for s in [*(r.slot for r in self.robots.values()), *self.slots.values()]}
+            for slot in served.values():
+                slot.controller.inference.close()  # an inference actor, if the slot has one
 
     @property
     def data_dir(self) -> Path:

@@ -66,6 +66,7 @@ class ControlLoop:
     tick_periods: deque
     loop_cpu_seconds: float
     operator_busy: dict[str, float]
+    inference_holds: int  # robot-steps held since the inference back end last answered (0: it answers)
 
     # -- workers and episodes -------------------------------------------------------------------------------
     def _spawn(self, robot: Robot) -> None:
@@ -239,6 +240,13 @@ class ControlLoop:
             self._after_step(r, steps[r.id])
 
     def _after_step(self, robot: Robot, step: RobotStep) -> None:
+        if step.unavailable is not None:  # the version's inference back end did not answer: the robot held
+            if not self.inference_holds:
+                log.warning("robot %d held: %s; retrying at every tick", robot.id, step.unavailable)
+            self.inference_holds += 1
+        elif self.inference_holds and robot.mode == "autonomous":
+            log.info("inference answers again after %d held robot-steps", self.inference_holds)
+            self.inference_holds = 0
         if step.uncertainty is not None:
             robot.u_history.append(step.uncertainty.U)
             robot.last_result = step.uncertainty

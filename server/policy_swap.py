@@ -109,6 +109,7 @@ class PolicySwap:
             in_use = [r.slot for r in self.robots.values()] + list(self.assigned.values())
             if all(slot is not old for slot in in_use):
                 self.slots.pop(old.version, None)  # no robot left on it: its weights and trace are freed
+                old.controller.inference.close()  # and its inference actor, if it has one
 
     def watch(self, stop: threading.Event) -> None:
         """The registry watcher thread: ``sync_policies`` every ``policy_poll_seconds`` until ``stop``."""

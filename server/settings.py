@@ -231,6 +231,15 @@ class Settings(BaseSettings):
     ray_cpus_per_actor: float = Field(
         1.0, gt=0, le=64, description="ray back end: the CPU share each robot actor reserves on its node"
     )
+    inference: Literal["local", "ray"] = Field(
+        "local",
+        description="where each policy version's batched network calls run: in the control loop's process, or in "
+        "a Ray actor per version (pip install '.[ray]'; docs/architecture.md)",
+    )
+    inference_gpus: float = Field(
+        0.0, ge=0, le=8, description="inference = 'ray': GPUs each inference actor reserves (> 0: it runs on cuda)"
+    )
+    inference_cpus: float = Field(1.0, ge=0, le=64, description="inference = 'ray': CPUs each inference actor reserves")
     worker_niceness: int = Field(
         10, ge=0, le=19, description="CPU priority of the physics workers below the control loop (os.nice)"
     )
@@ -255,13 +264,14 @@ class Settings(BaseSettings):
             cls._known_signal(name)
         return v
 
-    @field_validator("worker")
+    @field_validator("worker", "inference")
     @classmethod
-    def _worker_installed(cls, v: str) -> str:
+    def _ray_installed(cls, v: str, info) -> str:
         from server.ray_cluster import RayUnavailable, ray_available
 
         if v == "ray" and not ray_available():
-            raise ValueError(str(RayUnavailable("worker = 'ray' needs Ray, an optional extra: pip install '.[ray]'")))
+            what = f"{info.field_name} = 'ray'"
+            raise ValueError(str(RayUnavailable(f"{what} needs Ray, an optional extra: pip install '.[ray]'")))
         return v
 
     @model_validator(mode="after")

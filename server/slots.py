@@ -17,6 +17,7 @@ from policy.devices import prepare_for_serving
 from policy.diffusion_policy import DiffusionPolicy
 from policy.signals import SignalError, load_signal
 from server.errors import ServiceError
+from server.inference import make_inference
 from server.settings import Settings
 from sim.registry import make_task
 
@@ -77,7 +78,8 @@ def load_slot(settings: Settings, path: Path, task: str, version: int, lineage: 
         except (SignalError, ValueError) as exc:
             raise ServiceError(422, f"policy {path}: signal {name!r} is not ready: {exc}") from exc
     _warn_if_miscalibrated(path)
-    controller = Controller(policy, signals, settings.signal, spec.action_space, controller_config(settings))
+    inference = make_inference(settings, path, policy, signals)  # here, or a Ray actor (server.inference)
+    controller = Controller(policy, signals, settings.signal, spec.action_space, controller_config(settings), inference)
     return PolicySlot(version, path, task, policy, float(signals["denoising"].threshold), controller, lineage)
 
 

@@ -3,6 +3,7 @@
 import os
 
 import numpy as np
+import pytest
 
 from bench.fleet import available_workers, fleet_goals, fleet_throughput
 
@@ -25,9 +26,9 @@ def test_a_pooled_fleet_steps_every_robot_and_reports_its_memory(tmp_path):
 
 def test_the_goals_say_per_back_end_whether_this_run_met_them():
     rows = [
-        {"robots": 8, "worker": "process", "share_of_raw": 0.9},  # not the goal's size: not judged
-        {"robots": 16, "worker": "process", "share_of_raw": 0.49},
-        {"robots": 16, "worker": "pool", "share_of_raw": 0.7},
+        {"robots": 8, "backend": "process", "share_of_raw": 0.9},  # not the goal's size: not judged
+        {"robots": 16, "backend": "process", "share_of_raw": 0.49},
+        {"robots": 16, "backend": "pool", "share_of_raw": 0.7},
     ]
     goals = fleet_goals(rows, {"process": 5.2, "pool": 0.4})
     assert goals["share_of_raw_at_16"] == 0.7 and goals["share_of_raw_at_16_met"] == {"process": False, "pool": True}
@@ -42,6 +43,14 @@ def test_a_ray_fleet_steps_every_robot_and_reports_rays_overhead(tmp_path, ray_l
     assert out["workers_cpu_ms_per_env_step"] > 0  # the actors' processes, found by their pids
     assert out["ray_api_ms_per_tick"] > 0 and out["ray_api_us_per_call"] > 0
     assert out["backend_processes_cpu_ms_per_env_step"] > 0  # the local instance's raylet and GCS work too
+
+
+def test_a_fleet_with_its_inference_on_ray_reports_the_actors_call_and_compute_time(tmp_path, ray_local):
+    out = fleet_throughput("lift-cube", 2, 2.0, tmp_path / "var", worker="pool", robots_per_process=2, inference="ray")
+    assert out["inference"] == "ray" and out["env_steps_per_s"] > 0 and out["commands_applied"] > 0
+    call, compute = out["inference_call_ms"], out["inference_actor_compute_ms"]
+    assert 0 < compute < call  # one call per tick: the actor's network time, inside the loop's wait for it
+    assert out["inference_ray_overhead_ms_per_tick"] == pytest.approx(call - compute)
 
 
 def test_the_default_back_ends_are_those_installed_here():

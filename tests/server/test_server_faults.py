@@ -251,3 +251,40 @@ def test_whole_episodes_are_recorded_when_asked(tmp_path):
     ep = read_episode(resolve(settings.data_dir, row.path))
     assert len(ep) == row.steps == done[-1]["steps"] and ep.outcome is not None
     assert set(ep.sources) == {"policy"}
+
+
+def test_a_dead_inference_actor_holds_the_fleet_which_resumes_when_ray_restarts_it(tmp_path, ray_local):
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=1e9)  # never asks: the policy drives
+    settings = Settings(
+        data_dir=tmp_path / "var",
+        port=free_port(),
+        robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
+        worker="in-process",
+        inference="ray",
+        inference_cpus=0.5,
+        control_hz=20,
+        record_episodes=True,
+        console=False,
+    )
+    sessions = _sessions(settings)
+    with Service(settings) as svc:
+        fleet = svc.app_state().fleet
+        inference = fleet.robots[0].slot.controller.inference
+        pid = ray_local.get(inference.handle.pid.remote(), timeout=60)
+        assert pid != os.getpid()  # the policy and its signals run in the actor's process
+        wait_for(lambda: all(r.steps > 3 for r in fleet.robots.values()), 60)
+        os.kill(pid, signal.SIGKILL)
+        wait_for(lambda: fleet.inference_holds > 0, 30)  # every robot of the version holds meanwhile
+        with fleet.lock:
+            held = {r.id: r.steps for r in fleet.robots.values()}
+        assert inference.failures >= 1
+        time.sleep(0.3)
+        with fleet.lock:
+            if fleet.inference_holds:  # still down: no robot moved on its policy
+                assert {r.id: r.steps for r in fleet.robots.values()} == held
+        wait_for(lambda: all(r.steps > held[r.id] + 3 for r in fleet.robots.values()), 120)  # resumed
+        assert ray_local.get(inference.handle.pid.remote(), timeout=60) != pid  # on the restarted actor
+        assert all(r.mode != "faulted" and r.restarts == 0 for r in fleet.robots.values())
+    with sessions() as s:  # the episodes in progress were recorded through the outage and closed at the stop
+        outcomes = [e.outcome for e in s.query(EpisodeRecord).all()]
+    assert outcomes and "faulted" not in outcomes

@@ -1,0 +1,119 @@
+"""The controller's batched network calls behind one seam: ``Inference``.
+
+A controller's step (``policy.controller``) makes one call per tick, ``run(request)``, for the robots
+it scores: the policy's action chunks for those with nothing queued, then, for the whole batch, every
+signal's score and decision (``wants_help``), the asking signal's urgent requests and the explanation
+of each robot it wants to ask for. The controller keeps everything else: the robots' histories,
+queues, modes, cooldowns and the decisions built on these answers. It stays the one control step; a
+back end only computes.
+
+``LocalInference`` computes here, on the policy and signals the controller was built with. Another
+back end computes elsewhere on its own copies, loaded from the same policy folder
+(``server.inference``: a Ray actor, on a GPU node where one is present). The signals' per-robot state
+(persistence counters, progress windows) then lives there, which is why ``reset`` (a robot's new
+episode, or its leaving) goes through the seam as well.
+
+A back end that cannot answer raises ``InferenceUnavailable``; the controller then holds the robots
+the policy drives for that step (operators' commands still go through) and asks again at the next.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from policy.diffusion_policy import DiffusionPolicy
+from policy.signals.base import AssistanceSignal, Scores, SignalInput, TriggerState
+
+
+class InferenceUnavailable(RuntimeError):
+    """The back end could not answer this step (its process died, or is restarting)."""
+
+
+@dataclass
+class InferenceRequest:
+    """One step's batch. obs: (B, obs_horizon, obs_dim); current: (B, 10) the poses held now; plans:
+    (B, action_horizon, 10), the queued robots' plans (rows in ``need`` are filled by ``run`` from
+    ``noise``, (len(need), action_horizon, 10)); teleop: (B,) under an operator; operator: (B, 10) their
+    actions (NaN elsewhere) or None; asking: the signal whose urgent requests and explanations are
+    wanted (None: no robot may ask this step)."""
+
+    obs: torch.Tensor
+    current: torch.Tensor
+    robot_ids: np.ndarray
+    need: list[int]
+    noise: torch.Tensor | None
+    plans: torch.Tensor
+    teleop: np.ndarray
+    operator: torch.Tensor | None
+    asking: str | None
+
+
+@dataclass
+class InferenceResult:
+    """plans: the request's, with the fresh chunks; scores: every signal's; wants: every calibrated
+    signal's decision (B,); urgent: the asking signal's urgent requests (B,) or None; why: row -> the
+    asking signal's explanation, for the rows where it wants help."""
+
+    plans: torch.Tensor
+    scores: dict[str, Scores]
+    wants: dict[str, np.ndarray]
+    urgent: np.ndarray | None
+    why: dict[int, str | None]
+
+
+class Inference(ABC):
+    @abstractmethod
+    def run(self, request: InferenceRequest) -> InferenceResult: ...
+
+    @abstractmethod
+    def reset(self, robot_ids: Iterable[int]) -> None:
+        """The signals forget these robots (a new episode, or the robot left the controller)."""
+
+    def close(self) -> None:  # noqa: B027 - a back end in this process holds nothing to close
+        """Releases what the back end holds elsewhere (an actor)."""
+
+
+def compute(policy: DiffusionPolicy, signals: Mapping[str, AssistanceSignal], req: InferenceRequest) -> InferenceResult:
+    """What ``run`` answers, computed here with ``policy`` and ``signals``."""
+    plans = req.plans
+    with torch.no_grad():
+        if req.need:
+            plans[req.need] = policy.predict_action_chunk(req.obs[req.need], noise=req.noise).float().cpu()
+        batch = SignalInput(req.obs, req.current, req.robot_ids, action=plans, operator_action=req.operator)
+        scores = {name: s.score(batch) for name, s in signals.items()}
+    state = TriggerState(np.asarray(req.robot_ids), np.asarray(req.teleop, dtype=bool).copy())
+    wants = {
+        name: np.asarray(s.wants_help(scores[name], state), dtype=bool)
+        for name, s in signals.items()
+        if s.calibration is not None
+    }
+    urgent, why = None, {}
+    if req.asking is not None and req.asking in wants:
+        signal = signals[req.asking]
+        check = getattr(signal, "urgent", None)  # optional for duck-typed signals
+        urgent = np.asarray(check(state), dtype=bool) if check is not None else np.zeros(len(req.robot_ids), bool)
+        explain = getattr(signal, "explain", None)
+        why = {
+            int(j): explain(scores[req.asking], int(j)) if explain else None for j in np.flatnonzero(wants[req.asking])
+        }
+    return InferenceResult(plans, scores, wants, urgent, why)
+
+
+class LocalInference(Inference):
+    """The controller's policy and signals, called in this process."""
+
+    def __init__(self, policy: DiffusionPolicy, signals: Mapping[str, AssistanceSignal]) -> None:
+        self.policy, self.signals = policy, signals
+
+    def run(self, request: InferenceRequest) -> InferenceResult:
+        return compute(self.policy, self.signals, request)
+
+    def reset(self, robot_ids: Iterable[int]) -> None:
+        ids = list(robot_ids)
+        for signal in self.signals.values():
+            signal.reset(ids)
