@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	lift-baselines-hitl-docs resume-docs nights-docs nights-lift-docs asking-dev-docs \
-	operator-dev-docs fleet-backends-docs clean
+	operator-dev-docs fleet-backends-docs fleet-inference-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -227,6 +227,12 @@ fleet-backends-docs: install
 	$(BIN)/hitl bench fleet --robots 4,16 --seconds 15 --worker process pool ray --quiet \
 		> docs/results/serving/fleet-backends.json
 
+# docs/benchmarks/serving.md, "Inference in a Ray actor": the pooled fleet with its policy and signals in the loop's
+# thread and in a Ray actor, side by side (about 3 minutes)
+fleet-inference-docs: install
+	$(BIN)/hitl bench fleet --robots 4,16 --seconds 15 --worker pool --inference local ray --quiet \
+		> docs/results/serving/fleet-inference.json
+
 # docs/benchmarks/nights.md, "The simulated operator's failed grasps": the bundled lift policy on the shifted lift
 # tasks with the fleet's asking and the simulated operator as it drives now (it tries again when a grasp fails),
 # 20 development seeds each (about 4 minutes on 2 cores)
@@ -247,6 +253,7 @@ loop-docs: install
 # Quote only runs with `other_processes` near 0: the machine's other load is in the JSON.
 api-docs: install
 	$(BIN)/hitl bench api --quiet > docs/results/service/api.json
+	$(BIN)/hitl bench api --api-workers 1 --quiet > docs/results/service/api-replicas.json
 
 # docs/benchmarks/service.md, "What a fine-tuning job costs the fleet": the service's own launcher runs a job beside
 # 8 and 16 autonomous robots, at nice 19 with and without SCHED_IDLE (about 2 min each).

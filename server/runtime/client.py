@@ -27,6 +27,7 @@ import logging
 import pickle
 import threading
 import time
+from collections import deque
 from dataclasses import replace
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Client, Connection
@@ -37,8 +38,8 @@ from sqlalchemy.orm import sessionmaker
 from server import lease, registry
 from server.assistance import AssistanceRequest
 from server.errors import ServiceError
-from server.robot import RobotView
-from server.runtime.wire import Call, Hello, Reply, SlotRef, Snapshot
+from server.robot import U_HISTORY, RobotView
+from server.runtime.wire import Call, Hello, Reply, SlotRef, Snapshot, TimelineTail
 from server.scheduler import ScheduleStatus
 from server.settings import Settings
 from server.slots import PolicySlot, load_slot
@@ -106,6 +107,7 @@ class RemoteFleet:
         self._receiver: threading.Thread | None = None
         self._feed: Connection | None = None
         self._lineages: tuple[float, tuple] | None = None
+        self._timelines: dict[int, deque] = {}  # each robot's timeline, rebuilt from the tails
         self.snapshots = 0
 
     # -- life -------------------------------------------------------------------------------------------------
@@ -157,8 +159,9 @@ class RemoteFleet:
 
     def _apply(self, snap: Snapshot) -> None:
         # policy versions are loaded before the snapshot is shown: readers never see an unresolved slot
-        views = {rid: replace(v, slot=self.slots.resolve(v.slot)) for rid, v in snap.views.items()}
+        slots = {rid: self.slots.resolve(v.slot) for rid, v in snap.views.items()}
         with self._state_lock:
+            views = {rid: self._local(v, slots[rid]) for rid, v in snap.views.items()}
             if snap.full:
                 self._views = {rid: v for rid, v in self._views.items() if rid in snap.robots}
             for rid, view in views.items():
@@ -170,6 +173,20 @@ class RemoteFleet:
                 self._schedule = snap.schedule
         self.snapshots += 1
         self._first.set()
+
+    def _local(self, view: RobotView, slot: PolicySlot) -> RobotView:
+        """A view as it crossed, with its policy ``slot`` (loaded here) and its timeline rebuilt from the
+        tail (under the state lock: the robot's timeline is shared by snapshots and replies)."""
+        tail: TimelineTail = view.timeline
+        line = self._timelines.get(view.id)
+        if line is None or tail.whole:
+            line = self._timelines[view.id] = deque(maxlen=U_HISTORY)
+        elif tail.points:
+            first = tail.points[0].t
+            while line and line[-1].t >= first:  # the last point sent may have changed since
+                line.pop()
+        line.extend(tail.points)
+        return replace(view, slot=slot, timeline=tuple(line))
 
     def _keep(self, rid: int, t: float, view: RobotView) -> None:
         held = self._views.get(rid)
@@ -233,9 +250,9 @@ class RemoteFleet:
             else:
                 conn.close()
         if reply.view is not None:
-            view = replace(reply.view, slot=self.slots.resolve(reply.view.slot))
+            slot = self.slots.resolve(reply.view.slot)
             with self._state_lock:
-                self._keep(view.id, reply.t, view)
+                self._keep(reply.view.id, reply.t, self._local(reply.view, slot))
         if reply.error is not None:
             raise ServiceError(*reply.error)
         return reply.value

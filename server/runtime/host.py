@@ -32,7 +32,7 @@ from multiprocessing import connection
 from multiprocessing.connection import Connection, Listener
 
 from server.errors import ServiceError
-from server.runtime.wire import CALLS, ROBOT_CALLS, Call, Hello, Reply, Snapshot, portable
+from server.runtime.wire import CALLS, ROBOT_CALLS, Call, Hello, Reply, Snapshot, portable, timeline_since
 from server.scheduler import ScheduleStatus
 
 log = logging.getLogger("hitl.runtime")
@@ -154,6 +154,7 @@ class RuntimeHost:
     def _publish(self) -> None:
         period = 1.0 / self.publish_hz
         sent: dict[int, object] = {}  # the view objects in the last snapshot, by robot
+        marks: dict[int, tuple] = {}  # where each robot's timeline stood then (``timeline_since``)
         slow_every = max(1, round(self.publish_hz))  # metrics and schedule: once a second
         n = 0
         while not self._stop.wait(period):
@@ -163,8 +164,9 @@ class RuntimeHost:
             t = time.monotonic()
             views = self.fleet.views()
             robots = tuple(v.id for v in views)
-            changed = {v.id: portable(v) for v in views if sent.get(v.id) is not v}
+            changed = {v.id: portable(v, self._since(marks, v)) for v in views if sent.get(v.id) is not v}
             sent = {v.id: v for v in views}
+            marks = {v.id: timeline_since(v) for v in views}
             requests = self.fleet.requests()
             slow = n % slow_every == 0 or bool(joining)
             metrics = self.fleet.metrics() if slow else None
@@ -181,6 +183,12 @@ class RuntimeHost:
                 with self._lock:
                     self._subscribers.extend(c for c in joining if not c.closed)
             self.publish_seconds += time.perf_counter() - t0
+
+    @staticmethod
+    def _since(marks: dict[int, tuple], view) -> int | None:
+        """The clock the robot's timeline tail starts from: the last point sent, in the same episode."""
+        episode, last = marks.get(view.id, (None, None))
+        return last if last is not None and episode == view.episode_id else None
 
     def _send(self, conns: list[Connection], blob: bytes) -> None:
         for conn in list(conns):

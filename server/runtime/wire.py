@@ -83,12 +83,36 @@ class Snapshot:
     full: bool = False
 
 
-def portable(view: RobotView) -> RobotView:
-    """``view`` with its slot replaced by a ``SlotRef``."""
-    slot = view.slot
+@dataclass(frozen=True)
+class TimelineTail:
+    """A robot's timeline as it crosses: every point (``whole``), or those from the clock of the last
+    point sent before on (the last one may have changed since: ``Robot.record`` updates a point at the
+    same clock). The timeline is most of a view's objects; sending it whole at every snapshot cost the
+    API process more time unpickling than serving requests."""
+
+    points: tuple
+    whole: bool
+
+
+def portable(view: RobotView, since: int | None = None) -> RobotView:
+    """``view`` with its slot replaced by a ``SlotRef``, and its timeline by a ``TimelineTail`` (from
+    clock ``since`` on; None: whole)."""
+    slot, timeline = view.slot, view.timeline
     if isinstance(slot, SlotRef):
         return view
-    return replace(view, slot=SlotRef(slot.version, Path(slot.path), slot.task, slot.lineage))
+    if since is None:
+        tail = TimelineTail(tuple(timeline), whole=True)
+    else:
+        start = len(timeline)
+        while start > 0 and timeline[start - 1].t >= since:
+            start -= 1
+        tail = TimelineTail(tuple(timeline[start:]), whole=False)
+    return replace(view, slot=SlotRef(slot.version, Path(slot.path), slot.task, slot.lineage), timeline=tail)
+
+
+def timeline_since(view: RobotView) -> tuple[int | None, int | None]:
+    """(episode, clock of its last timeline point): where the next ``TimelineTail`` of the robot starts."""
+    return view.episode_id, (view.timeline[-1].t if view.timeline else None)
 
 
 @dataclass(frozen=True)

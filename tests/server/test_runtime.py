@@ -200,3 +200,29 @@ def test_a_console_log_in_through_one_api_process_holds_at_the_other(replicated)
     assert httpx.get(f"{b}/console/", cookies=cookies).status_code == 200  # the session is in the database
     assert httpx.post(f"{b}/console/logout", cookies=cookies, follow_redirects=False).status_code == 303
     assert httpx.get(f"{a}/console/", cookies=cookies).status_code == 401  # logged out everywhere at once
+
+
+def test_a_robots_timeline_crosses_as_tails_and_is_rebuilt_as_the_runtime_has_it():
+    from types import SimpleNamespace
+
+    from server.robot import U_HISTORY, Robot, TimelinePoint
+    from server.runtime.host import RuntimeHost
+    from server.runtime.wire import portable, timeline_since
+
+    slot = SimpleNamespace(version=1, path="policy", task="lift-cube", lineage="lift")
+    robot = Robot(0, "lift-cube", slot, seed=0, commands=None, episode_id=1)
+    remote = RemoteFleet(Settings(), ("127.0.0.1", 1), b"key", sessions=None)  # nothing connects here
+    marks, sizes = {}, []
+    for step in range(2 * U_HISTORY + 7):
+        if step == U_HISTORY + 3:  # a new episode starts a new timeline
+            robot.episode_id, robot.timeline = 2, type(robot.timeline)(maxlen=U_HISTORY)
+        t = step // 2  # two records per clock: the second updates the first (a robot holding while it waits)
+        robot.record(TimelinePoint(t, "waiting" if step % 2 else "autonomous", float(step), None))
+        if step % 3:
+            continue
+        robot.publish()
+        crossed = portable(robot.view, RuntimeHost._since(marks, robot.view))
+        marks[0] = timeline_since(robot.view)
+        sizes.append(len(crossed.timeline.points))
+        assert remote._local(crossed, slot).timeline == robot.view.timeline, step
+    assert max(sizes[2:]) <= 3 < U_HISTORY  # tails, not whole timelines, once it has started
