@@ -60,11 +60,21 @@ def _serve_replica(settings_json: str, link: RuntimeLink, sock: socket.socket, l
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s[%(process)d]: %(message)s", handlers=handlers
     )
     torch.set_num_threads(1)
+    threading.Thread(target=_end_with_parent, args=(os.getppid(),), name="parent-watch", daemon=True).start()
     settings = Settings.model_validate_json(settings_json)
     app = create_app(settings, link=link)
     server = uvicorn.Server(uvicorn.Config(app, log_level=log_level, log_config=None))
     app.state.server = server
     server.run(sockets=[sock])
+
+
+def _end_with_parent(parent: int, poll_s: float = 1.0) -> None:
+    """An API process outlives no runtime: when the process that started it is gone (killed, even with
+    SIGKILL), it shuts down as on SIGTERM and frees the service's port."""
+    while os.getppid() == parent:
+        time.sleep(poll_s)
+    logging.getLogger("hitl.runtime").warning("the fleet runtime's process %d is gone: stopping", parent)
+    os.kill(os.getpid(), signal.SIGTERM)
 
 
 class ApiReplicas:

@@ -103,6 +103,7 @@ class RemoteFleet:
         self._schedule: ScheduleStatus | None = None
         self._ticks = 0
         self._first = threading.Event()
+        self._live = False  # the snapshot feed is up
         self._stop = threading.Event()
         self._receiver: threading.Thread | None = None
         self._feed: Connection | None = None
@@ -148,6 +149,7 @@ class RemoteFleet:
                     self._apply(pickle.loads(self._feed.recv_bytes()))
                     backoff = 0.1
             except Exception as exc:  # noqa: BLE001 - stop() closes the feed under recv(): any error then ends it
+                self._live = False
                 if self._stop.is_set():
                     return
                 if not isinstance(exc, (OSError, EOFError, ServiceError)):
@@ -172,6 +174,7 @@ class RemoteFleet:
             if snap.schedule is not None:
                 self._schedule = snap.schedule
         self.snapshots += 1
+        self._live = True
         self._first.set()
 
     def _local(self, view: RobotView, slot: PolicySlot) -> RobotView:
@@ -196,7 +199,9 @@ class RemoteFleet:
     # -- reads (the last snapshot) ----------------------------------------------------------------------------
     @property
     def ticks(self) -> int:
-        return self._ticks
+        """The runtime's, as of its last snapshot; 0 while its snapshot feed is down (``/readyz`` then says
+        this API process is not ready)."""
+        return self._ticks if self._live else 0
 
     @property
     def data_dir(self) -> Path:

@@ -20,6 +20,7 @@ The runtime never waits for an API process: a subscriber whose socket does not t
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import pickle
 import socket
@@ -80,7 +81,9 @@ class RuntimeHost:
 
     def stop(self) -> None:
         self._stop.set()
-        self._listener.close()  # wakes accept()
+        with contextlib.suppress(OSError):  # a blocked accept() is not woken by closing its socket: connect
+            socket.create_connection(self.address, timeout=1).close()
+        self._listener.close()
         for thread in self._threads:
             thread.join(timeout=5)
         with self._lock:
@@ -98,6 +101,9 @@ class RuntimeHost:
                 if self._stop.is_set():
                     return
                 continue
+            if self._stop.is_set():
+                conn.close()
+                return
             threading.Thread(target=self._open, args=(conn,), name="runtime-open", daemon=True).start()
 
     def _open(self, conn: Connection) -> None:
@@ -158,31 +164,41 @@ class RuntimeHost:
         slow_every = max(1, round(self.publish_hz))  # metrics and schedule: once a second
         n = 0
         while not self._stop.wait(period):
-            t0 = time.perf_counter()
             with self._lock:
                 joining, self._joining = self._joining, []
-            t = time.monotonic()
-            views = self.fleet.views()
-            robots = tuple(v.id for v in views)
-            changed = {v.id: portable(v, self._since(marks, v)) for v in views if sent.get(v.id) is not v}
-            sent = {v.id: v for v in views}
-            marks = {v.id: timeline_since(v) for v in views}
-            requests = self.fleet.requests()
-            slow = n % slow_every == 0 or bool(joining)
-            metrics = self.fleet.metrics() if slow else None
-            schedule = self.schedule() if slow and self.schedule is not None else None
-            ticks = self.fleet.ticks
+            try:
+                sent, marks = self._publish_once(sent, marks, joining, n % slow_every == 0)
+            except Exception:  # noqa: BLE001 - a snapshot that cannot be built must not end the publishing
+                log.exception("fleet runtime: a snapshot failed; the next one is tried")
+                for conn in joining:  # they connect again and get a full snapshot then
+                    conn.close()
             n += 1
-            if self._subscribers:
-                blob = pickle.dumps(Snapshot(t, ticks, changed, requests, robots, metrics, schedule))
-                self._send(self._subscribers, blob)
-            if joining:
-                full = {v.id: portable(v) for v in views}
-                blob = pickle.dumps(Snapshot(t, ticks, full, requests, robots, metrics, schedule, full=True))
-                self._send(joining, blob)
-                with self._lock:
-                    self._subscribers.extend(c for c in joining if not c.closed)
-            self.publish_seconds += time.perf_counter() - t0
+
+    def _publish_once(self, sent: dict, marks: dict, joining: list[Connection], slow: bool) -> tuple[dict, dict]:
+        """One snapshot to the subscribers (the changes) and a full one to those ``joining``; returns the
+        views sent and where their timelines stood, for the next."""
+        t0 = time.perf_counter()
+        t = time.monotonic()
+        views = self.fleet.views()
+        robots = tuple(v.id for v in views)
+        changed = {v.id: portable(v, self._since(marks, v)) for v in views if sent.get(v.id) is not v}
+        requests = self.fleet.requests()
+        slow = slow or bool(joining)
+        metrics = self.fleet.metrics() if slow else None
+        schedule = self.schedule() if slow and self.schedule is not None else None
+        ticks = self.fleet.ticks
+        if self._subscribers:
+            self._send(
+                self._subscribers, pickle.dumps(Snapshot(t, ticks, changed, requests, robots, metrics, schedule))
+            )
+        if joining:
+            full = {v.id: portable(v) for v in views}
+            blob = pickle.dumps(Snapshot(t, ticks, full, requests, robots, metrics, schedule, full=True))
+            self._send(joining, blob)
+            with self._lock:
+                self._subscribers.extend(c for c in joining if not c.closed)
+        self.publish_seconds += time.perf_counter() - t0
+        return {v.id: v for v in views}, {v.id: timeline_since(v) for v in views}
 
     @staticmethod
     def _since(marks: dict[int, tuple], view) -> int | None:

@@ -3,9 +3,12 @@
 
 import os
 import signal
+import subprocess
+import sys
 import threading
 import uuid
 from multiprocessing.connection import Client
+from pathlib import Path
 
 import httpx
 import pytest
@@ -18,7 +21,7 @@ from server.runtime.client import RemoteFleet, RuntimeUnavailable, robot_lease
 from server.runtime.wire import Call, Hello
 from server.settings import RobotGroup, Settings
 from service.replicas import ReplicatedService
-from tests.helpers import tiny_policy_folder, wait_for
+from tests.helpers import free_port, tiny_policy_folder, wait_for
 
 API = "/api/v1"
 OPERATORS = 8
@@ -226,3 +229,87 @@ def test_a_robots_timeline_crosses_as_tails_and_is_rebuilt_as_the_runtime_has_it
         sizes.append(len(crossed.timeline.points))
         assert remote._local(crossed, slot).timeline == robot.view.timeline, step
     assert max(sizes[2:]) <= 3 < U_HISTORY  # tails, not whole timelines, once it has started
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_hitl_serve_with_api_workers_serves_and_leaves_no_api_process_when_killed(tmp_path):
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=1e9)
+    config = tmp_path / "fleet.toml"
+    config.write_text(
+        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nworker = "in-process"\nconsole = false\n'
+        f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
+    )
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    cmd = [
+        sys.executable,
+        "-m",
+        "hitl.cli",
+        "serve",
+        "--config",
+        str(config),
+        "--port",
+        str(port),
+        "--api-workers",
+        "1",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_for(lambda: _ready(url), timeout=180)
+        api = [p for p in _children(proc.pid) if _serves(p)]
+        assert len(api) == 1  # the API answers from a process of its own
+        proc.send_signal(signal.SIGKILL)  # the runtime's process, as a crash takes it
+        proc.wait(timeout=30)
+        wait_for(lambda: not _alive(api[0]), timeout=30)  # the API process follows it
+        with pytest.raises(httpx.ConnectError):
+            httpx.get(url + "/healthz", timeout=2)  # and frees the port
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _ready(url: str) -> bool:
+    try:
+        return httpx.get(url + "/readyz", timeout=2).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def _serves(pid: int) -> bool:
+    """Whether the process holds a listening TCP socket (an API process does; the runtime's own listener is
+    on another port, in the parent)."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").glob("*"):
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    listening = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            cols = line.split()
+            if cols[3] == "0A":  # LISTEN
+                listening.add(cols[9])
+    return bool(inodes & listening)
