@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	lift-baselines-hitl-docs resume-docs nights-docs nights-lift-docs asking-dev-docs \
-	operator-dev-docs fleet-backends-docs fleet-inference-docs clean
+	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -251,6 +251,12 @@ loop-docs: install
 
 # docs/benchmarks/service.md, "API load": the real service, 16 robots, 50 REST/WebSocket clients (about 1 min).
 # Quote only runs with `other_processes` near 0: the machine's other load is in the JSON.
+# docs/benchmarks/service.md, "Durability of takeover steps": a takeover's steps written with a flush once a second,
+# after every step, and after every step with fsync, on the data root's disk (about 2 minutes)
+segments-docs: install
+	mkdir -p var
+	$(BIN)/hitl bench segments --dir var --quiet > docs/results/service/segments.json
+
 api-docs: install
 	$(BIN)/hitl bench api --quiet > docs/results/service/api.json
 	$(BIN)/hitl bench api --api-workers 1 --quiet > docs/results/service/api-replicas.json

@@ -128,6 +128,22 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_segments(args: argparse.Namespace) -> int:
+    import json
+
+    from bench.segments import bench_segments
+
+    if not 10 <= args.steps <= 100_000:
+        raise ValueError(f"--steps must be in 10..100000, got {args.steps}")
+    if not 0 <= args.control_hz <= 1000:
+        raise ValueError(f"--control-hz must be in 0..1000, got {args.control_hz}")
+    if args.dir is not None and not args.dir.is_dir():
+        raise ValueError(f"--dir {args.dir} is not a folder")
+    result = bench_segments(steps=args.steps, control_hz=args.control_hz, directory=args.dir, progress=not args.quiet)
+    print(json.dumps(result, indent=None if args.json else 2))
+    return 0
+
+
 def _cmd_bench_api(args: argparse.Namespace) -> int:
     import json
 
@@ -306,6 +322,16 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_fleet)
+
+    q = bench.add_parser(
+        "segments", help="what making each takeover step durable costs: flush per second, per step, fsync"
+    )
+    q.add_argument("--steps", type=int, default=300)
+    q.add_argument("--control-hz", type=float, default=10.0, help="steps per second (0: back to back)")
+    q.add_argument("--dir", type=Path, default=None, help="where the files go (default: a temporary folder)")
+    q.add_argument("--json", action="store_true")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_segments)
 
     q = bench.add_parser("api", help="the service under concurrent REST/WebSocket clients; control rate idle vs load")
     q.add_argument("--robots", type=int, default=16)

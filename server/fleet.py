@@ -50,7 +50,13 @@ class Fleet(ControlLoop, OperatorMethods):
         self.settings = settings
         self.sessions = sessions
         self.queue = AssistanceQueue(settings.lease_seconds)
-        self.recorder = Recorder(sessions, settings.data_dir, settings.record_episodes)
+        self.recorder = Recorder(
+            sessions,
+            settings.data_dir,
+            settings.record_episodes,
+            settings.segment_flush_seconds,
+            settings.segment_fsync,
+        )
         self.robots: dict[int, Robot] = {}
         self.lock = threading.RLock()
         self.policies = PolicySwap(settings, sessions, self.lock, self.robots)  # slots, and the lineages' versions

@@ -39,10 +39,21 @@ def _stored(data_dir: Path, path: Path) -> str:
 
 
 class Recorder:
-    def __init__(self, sessions: sessionmaker, data_dir: Path, record_episodes: bool) -> None:
+    """segment_flush_seconds, segment_fsync: how durable a takeover's steps are (``SegmentWriter``; the
+    settings of the same names, docs/service.md)."""
+
+    def __init__(
+        self,
+        sessions: sessionmaker,
+        data_dir: Path,
+        record_episodes: bool,
+        segment_flush_seconds: float = 0.0,
+        segment_fsync: bool = False,
+    ) -> None:
         self.sessions = sessions
         self.data_dir = Path(data_dir).resolve()
         self.record_episodes = record_episodes
+        self.segment_flush_seconds, self.segment_fsync = segment_flush_seconds, segment_fsync
         self._totals: dict | None = None  # ``totals()`` until the next episode row ends
         self._ended = 0  # episode rows ended by this recorder: a ``totals()`` computed across one is not kept
 
@@ -146,7 +157,7 @@ class Recorder:
             "reason": reason,
             "seed": robot.seed,
         }
-        robot.segment = SegmentWriter(path, meta)
+        robot.segment = SegmentWriter(path, meta, self.segment_flush_seconds, self.segment_fsync)
         with self.sessions() as s:
             row = SegmentRecord(
                 robot_id=robot.id,

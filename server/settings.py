@@ -195,6 +195,16 @@ class Settings(BaseSettings):
         "127.0.0.1 port that any local process can reach: docs/console.md)",
     )
     record_episodes: bool = False
+    segment_flush_seconds: float = Field(
+        0.0,
+        ge=0,
+        le=60,
+        description="a takeover's steps reach the operating system at least this often; 0: each step before the "
+        "next tick, so a killed server loses none (docs/service.md, 'Durability')",
+    )
+    segment_fsync: bool = Field(
+        False, description="each flush also reaches the disk (fsync): a power loss loses no flushed step either"
+    )
     max_body_bytes: int = Field(64 * 1024, ge=1024)
     seed: int = 0
     batch_invariant: bool = Field(

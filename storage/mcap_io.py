@@ -50,10 +50,13 @@ class JsonMcapWriter:
     def add_metadata(self, name: str, values: dict) -> None:
         self._writer.add_metadata(name, {k: json.dumps(v) for k, v in values.items()})
 
-    def flush(self) -> None:
-        """Closes the current chunk and flushes it to disk: a crash after this keeps it."""
+    def flush(self, sync: bool = False) -> None:
+        """Closes the current chunk and hands it to the operating system: a crash of this process after
+        this keeps it. ``sync``: also ``fsync``, so that a crash of the machine keeps it too."""
         self._writer.flush()
         self._file.flush()
+        if sync:
+            os.fsync(self._file.fileno())
 
     def close(self) -> None:
         """Writes the summary and footer."""

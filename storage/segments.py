@@ -5,7 +5,8 @@ too): the observation, the operator's command, the resulting absolute
 action and the same action in the policy's normalized action space (the fine-tune label), U and
 any shadow signal scores, and the end-effector pose. ``/tf`` carries the end effector and
 ``/denoising/field`` the denoising vector field as a ``foxglove.SceneUpdate`` of arrows coloured
-by mode. The writer flushes at least once a second, so a crash loses at most the last second;
+by mode. The writer flushes at least every ``flush_seconds`` (the service: after every step, so a
+crash of the server loses no step it applied; docs/service.md, "Durability");
 ``read_segment(path, recover=True)`` salvages a file left open by a crash.
 """
 
@@ -77,9 +78,11 @@ def field_scene_update(ns: int, samples: np.ndarray, vectors: np.ndarray, labels
 
 
 class SegmentWriter:
-    """Writes one takeover; ``close(status)`` ends it. Flushes at least every ``flush_seconds``."""
+    """Writes one takeover; ``close(status)`` ends it. Flushes at least every ``flush_seconds`` (0: after
+    every step, so a crash of the writing process loses no step written); ``fsync``: each flush also
+    reaches the disk, so a crash of the machine loses none either."""
 
-    def __init__(self, path: str | Path, meta: dict, flush_seconds: float = 1.0) -> None:
+    def __init__(self, path: str | Path, meta: dict, flush_seconds: float = 1.0, fsync: bool = False) -> None:
         self.path = Path(path)
         self._mcap = JsonMcapWriter(self.path, SCHEMAS, chunk_size=64 * 1024)
         ch = self._mcap.channel
@@ -92,7 +95,7 @@ class SegmentWriter:
         }
         self.meta = dict(meta)
         self.steps = 0
-        self._flush_seconds = flush_seconds
+        self._flush_seconds, self._fsync = flush_seconds, fsync
         self._last_flush = time.monotonic()
         self._dirty = False
         self._mcap.add_metadata("takeover", self.meta)
@@ -154,7 +157,7 @@ class SegmentWriter:
             self.flush()
 
     def flush(self) -> None:
-        self._mcap.flush()
+        self._mcap.flush(sync=self._fsync)
         self._last_flush = time.monotonic()
         self._dirty = False
 

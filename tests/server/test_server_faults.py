@@ -288,3 +288,48 @@ def test_a_dead_inference_actor_holds_the_fleet_which_resumes_when_ray_restarts_
     with sessions() as s:  # the episodes in progress were recorded through the outage and closed at the stop
         outcomes = [e.outcome for e in s.query(EpisodeRecord).all()]
     assert outcomes and "faulted" not in outcomes
+
+
+def test_every_applied_teleop_step_survives_a_kill_right_after_it(tmp_path):
+    """The durability bound (docs/service.md): a step shown applied is in the takeover's file, even when
+    the server is killed at once, in the window the old one-second flush left open."""
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
+    config = tmp_path / "fleet.toml"
+    config.write_text(
+        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget_steps = 100\nworker = "in-process"\n'
+        f'console = false\n[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
+    )
+    settings = Settings.load(config)
+    sessions = _sessions(settings)
+    h = {"Authorization": f"Bearer {create_token(sessions, 'op', 'operator')}"}
+    port = free_port()
+    url, sent = f"http://127.0.0.1:{port}", []
+    api = url + "/api/v1"
+    proc = _serve(config, port)
+    try:
+        _ready(url)
+        wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
+        assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
+        for i in range(30):
+            before = httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"]
+            cmd = {"delta_pos": [0.0, 0.0, 0.0005 * (i + 1)], "gripper": -1}
+            assert httpx.post(api + "/robots/0/command", json=cmd, headers=h).status_code == 200
+            sent.append(cmd["delta_pos"])
+            wait_for(lambda b=before: httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"] > b, 10)
+        proc.send_signal(signal.SIGKILL)  # at once: the last step was applied a tick ago at most
+        assert proc.wait(timeout=60) == -signal.SIGKILL
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    proc = _serve(config, port)  # the restart rewrites the segment the kill left open
+    try:
+        _ready(url)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    with sessions() as s:
+        row = s.query(SegmentRecord).one()
+        assert row.status == "recovered"
+        path = resolve(settings.data_dir, row.path)
+    commands = [m["command"]["delta_pos"] for topic, m in _standard_read(path) if topic == "/takeover/step"]
+    assert commands == sent, (len(commands), len(sent))  # all 30, in order: none lost

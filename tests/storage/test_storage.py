@@ -186,3 +186,20 @@ def test_field_arrows_point_along_the_vectors():
         x_axis = Rotation.from_quat([q["x"], q["y"], q["z"], q["w"]]).apply([1.0, 0, 0])
         np.testing.assert_allclose(x_axis, v / np.linalg.norm(v), atol=1e-9)
         assert arrow["shaft_length"] + arrow["head_length"] == pytest.approx(np.linalg.norm(v) * 0.01)
+
+
+@pytest.mark.parametrize(("flush_seconds", "fsync"), [(0.0, False), (0.0, True), (3600.0, False)])
+def test_a_step_is_on_disk_when_write_step_returns_only_with_a_flush_per_step(tmp_path, flush_seconds, fsync):
+    """What a crash of the writer right after a step keeps: read while the writer is still open, as
+    recovery reads a file whose writer was killed."""
+    from storage.segments import SegmentWriter, read_segment
+
+    path = tmp_path / "takeover.mcap"
+    writer = SegmentWriter(path, {"robot": 0}, flush_seconds=flush_seconds, fsync=fsync)
+    act = np.r_[[0.0, 0.0, 0.9], [0, 1, 0, 1, 0, 0], [-1.0]]
+    kept = []
+    for t in range(5):  # small steps: no chunk fills up on its own
+        writer.write_step(np.full(26, t, np.float32), {"t": t}, act, act, act[:3], [0, 0, 0, 1.0], 0.1)
+        kept.append(len(read_segment(path, recover=True).steps))
+    writer.close("closed", "hand-back")
+    assert kept == ([1, 2, 3, 4, 5] if flush_seconds == 0 else [0, 0, 0, 0, 0])
