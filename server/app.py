@@ -26,10 +26,12 @@ from typing import Protocol
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from server.api import assistance, finetune, policies, records, robots, system, ws_messages
 from server.api.schemas import ErrorOut, FieldError
@@ -45,6 +47,7 @@ from server.settings import Settings
 
 log = logging.getLogger("hitl.server")
 API_PREFIX = "/api/v1"
+HTTP_METHODS = frozenset({"get", "put", "post", "delete", "options", "head", "patch", "trace"})
 DOCS_PATH = "/docs"
 REDOC_PATH = "/redoc"
 DOCS_ASSETS = "/docs/assets"  # Swagger UI's and ReDoc's files, from the fastapi-offline package
@@ -106,6 +109,18 @@ def _replica_schedule(fleet: RemoteFleet, launcher: JobLauncher) -> ScheduleStat
     """An API replica's schedule: the runtime's (it runs the scheduler), with the jobs this replica started."""
     status = fleet.schedule_status() or ScheduleStatus.of(None, launcher)
     return status.with_launcher(launcher)
+
+
+def allowed_methods(app: FastAPI, path: str, also: str = "") -> list[str]:
+    """Every method the API documents at ``path`` (its OpenAPI document: a path served by several
+    routes, as GET and POST ``/policies``, allows all of theirs; FastAPI serves no HEAD for a GET), with
+    ``also``, the methods Starlette named (routes outside the document), sorted."""
+    methods = {m.strip().upper() for m in also.split(",") if m.strip()}
+    for template, operations in app.openapi().get("paths", {}).items():
+        pattern = "^" + re.sub(r"\\{[^/]+?\\}", "[^/]+", re.escape(template)) + "/?$"
+        if re.match(pattern, path):
+            methods |= {m.upper() for m in operations if m.lower() in HTTP_METHODS}
+    return sorted(methods)
 
 
 def fleet_ready(fleet: FleetPort | None) -> bool:
@@ -253,6 +268,15 @@ def create_app(
     @app.exception_handler(ServiceError)
     async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
         return JSONResponse(ErrorOut(detail=exc.message).model_dump(), status_code=exc.status)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code != 405:
+            return await http_exception_handler(request, exc)
+        # Starlette names only the methods of the first route that matched the path; a path served by
+        # several routes (GET and POST /policies) allows all of theirs (RFC 9110, 15.5.6)
+        allow = ", ".join(allowed_methods(request.app, request.url.path, (exc.headers or {}).get("Allow", "")))
+        return JSONResponse(ErrorOut(detail=str(exc.detail)).model_dump(), status_code=405, headers={"Allow": allow})
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -6,7 +6,7 @@ import math
 from datetime import datetime
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationInfo, field_validator
 
 from sim.spaces import TeleopCommand
 
@@ -47,6 +47,17 @@ class ReadyOut(BaseModel):
     ready: bool = Field(..., description="the control loop has ticked (HTTP 503 until then)")
 
 
+def _not_a_bool(v):
+    """JSON's true and false are not numbers (a JSON Schema ``number`` excludes them); pydantic would
+    take them as 1 and 0."""
+    if isinstance(v, bool):
+        raise ValueError("must be a number, not true or false")
+    return v
+
+
+Real = Annotated[float, BeforeValidator(_not_a_bool)]
+
+
 def _finite_vector(name: str, v: list[float], limit: float) -> list[float]:
     if len(v) != 3:
         raise ValueError(f"{name} must have 3 components, got {len(v)}")
@@ -62,14 +73,14 @@ class TeleopCommandIn(BaseModel):
     """A delta end-effector pose (world frame) and a gripper command (-1 open .. +1 closed)."""
 
     model_config = ConfigDict(extra="forbid")
-    delta_pos: list[float] = Field(..., min_length=3, max_length=3, description=f"metres, norm <= {MAX_DELTA_POS}")
-    delta_rot: list[float] = Field(
+    delta_pos: list[Real] = Field(..., min_length=3, max_length=3, description=f"metres, norm <= {MAX_DELTA_POS}")
+    delta_rot: list[Real] = Field(
         default_factory=lambda: [0.0, 0.0, 0.0],
         min_length=3,
         max_length=3,
         description=f"rotation vector, rad, norm <= {MAX_DELTA_ROT}",
     )
-    gripper: float = Field(..., ge=-1.0, le=1.0)
+    gripper: Real = Field(..., ge=-1.0, le=1.0)
 
     @field_validator("delta_pos", "delta_rot", mode="before")
     @classmethod

@@ -257,3 +257,23 @@ def test_policy_paths_the_os_refuses_are_422(service):
         assert r.status_code == 422, r.text
         detail = r.json()["detail"]
         assert detail[0]["loc"] == loc if loc else "cannot be read: File name too long" in detail, detail
+
+
+def test_a_405_names_every_method_the_path_allows():
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+    from server.settings import Settings
+
+    client = TestClient(create_app(Settings()))  # no lifespan: routing and error handling only
+    for method, path, allow in (
+        ("OPTIONS", "/api/v1/policies", "GET, POST"),  # two routes serve this path
+        ("OPTIONS", "/api/v1/finetune-jobs", "GET, POST"),
+        ("DELETE", "/api/v1/robots/0/claim", "POST"),
+        ("HEAD", "/api/v1/robots", "GET"),  # FastAPI serves no HEAD for a GET route
+        ("POST", "/api/v1/robots/3", "GET"),
+    ):
+        r = client.request(method, path)
+        assert r.status_code == 405 and r.headers["allow"] == allow, (method, path, r.headers.get("allow"))
+        if method != "HEAD":  # a HEAD answer has no body
+            assert r.json() == {"detail": "Method Not Allowed"}  # the one error schema

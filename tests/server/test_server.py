@@ -93,6 +93,8 @@ def test_takeover_round_trip_records_a_segment(service):
         ({"delta_pos": [0.5, 0, 0], "gripper": -1}, "above the limit"),
         ({"delta_pos": [0, 0], "gripper": -1}, "3 components"),
         ({"delta_pos": [0, 0, 0], "gripper": 3}, "less than or equal"),
+        ({"delta_pos": [0, 0, 0], "gripper": False}, "not true or false"),  # a JSON bool is not a number
+        ({"delta_pos": [True, 0, 0], "gripper": -1}, "not true or false"),
     ):
         r = httpx.post(
             api + "/robots/0/command",
