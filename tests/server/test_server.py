@@ -90,7 +90,8 @@ def test_takeover_round_trip_records_a_segment(service):
     # bad commands: 422 with a message, nothing changes
     for bad, msg in (
         ({"delta_pos": [math.nan, 0, 0], "gripper": -1}, "NaN"),
-        ({"delta_pos": [0.5, 0, 0], "gripper": -1}, "above the limit"),
+        ({"delta_pos": [0.5, 0, 0], "gripper": -1}, "less than or equal to 0.1"),  # each component, as the schema
+        ({"delta_pos": [0, 0, 0], "delta_rot": [0, -0.6, 0], "gripper": -1}, "greater than or equal to -0.5"),
         ({"delta_pos": [0, 0], "gripper": -1}, "3 components"),
         ({"delta_pos": [0, 0, 0], "gripper": 3}, "less than or equal"),
         ({"delta_pos": [0, 0, 0], "gripper": False}, "not true or false"),  # a JSON bool is not a number
