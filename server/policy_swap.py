@@ -124,13 +124,14 @@ class PolicySwap:
         key = str(Path(path).resolve())
         info = _policy_info(Path(key))
         task = task or info.get("task")
+        # the request conflicts with what the folder holds (409), which no schema of the request can say
         if task is None:
-            raise ServiceError(422, f"{key}/config.json names no task: give one")
+            raise ServiceError(409, f"{key}/config.json names no task: give one")
         obs_dim = info.get("policy", {}).get("obs_dim")
         spec = _task_spec(task)
         if obs_dim != spec.obs_spec.dim:
             raise ServiceError(
-                422, f"policy {key} expects {obs_dim}-dim observations, {task} gives {spec.obs_spec.dim}"
+                409, f"policy {key} expects {obs_dim}-dim observations, {task} gives {spec.obs_spec.dim}"
             )
         return registry.register(self.sessions, key, task, parent=parent, command=info.get("command")).id
 
@@ -213,6 +214,9 @@ class PolicySwap:
 
 
 def _policy_info(path: Path) -> dict:
+    """The folder's ``config.json``: 404 where there is none (no policy there), 422 where it is broken."""
+    if not (path / "config.json").is_file():
+        raise ServiceError(404, f"no policy folder at {path}: it has no config.json (hitl train writes one)")
     try:
         return read_info(path)
     except CheckpointError as exc:

@@ -7,6 +7,7 @@ through the database, and the fleet follows within ``policy_poll_seconds``.
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 from fastapi import APIRouter
@@ -42,7 +43,12 @@ def policies(sessions: SessionsDep, fleet: FleetDep, _: Viewer, name: PolicyName
         AUTH,
         BODY,
         404,
-        why={404: "no policy version parent_id", 422: "the request does not validate, or the folder is no policy"},
+        409,
+        why={
+            404: "no policy folder at path, or no policy version parent_id",
+            409: "the folder's policy does not fit the task (its observation size), or names no task and none is given",
+            422: "the request does not validate, or the folder holds a broken policy",
+        },
     ),
 )
 def register_policy(body: PolicyIn, sessions: SessionsDep, fleet: FleetDep, _: Admin) -> PolicyOut:
@@ -50,8 +56,9 @@ def register_policy(body: PolicyIn, sessions: SessionsDep, fleet: FleetDep, _: A
     lineage named after the folder (the same folder again: the same version)."""
     try:
         version = fleet.register_policy(Path(body.path), body.task, body.parent_id)
-    except OSError as exc:  # the folder cannot be looked at: a name too long, no permission, ...
-        raise ServiceError(422, f"policy folder {body.path!r} cannot be read: {exc.strerror}") from exc
+    except OSError as exc:  # the folder cannot be looked at: a name too long (no such folder), no permission
+        status = 404 if exc.errno in (errno.ENAMETOOLONG, errno.ENOENT, errno.ENOTDIR) else 422
+        raise ServiceError(status, f"policy folder {body.path[:200]!r} cannot be read: {exc.strerror}") from exc
     return _out(fleet, [registry.by_id(sessions, version)])[0]
 
 

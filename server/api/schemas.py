@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationInfo, field_validator
 
+from sim.registry import TASKS
 from sim.spaces import TeleopCommand
 
 MAX_DELTA_POS = 0.1  # m per command and component; larger is rejected (the robot clamps to 3 cm per step anyway)
@@ -217,13 +218,13 @@ class SegmentOut(BaseModel):
     ended_at: datetime | None
 
 
-PolicyName = Annotated[str, Field(min_length=1, max_length=256, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")]
+PolicyName = Annotated[str, Field(min_length=1, max_length=256, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,255}$")]
 PolicyRefText = Annotated[
     str,
     Field(
         min_length=1,
-        max_length=300,
-        pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*(@(active|[1-9][0-9]{0,8}))?$",
+        max_length=266,
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,255}(@(active|[1-9][0-9]{0,8}))?$",  # registry.PolicyRef's
         description="NAME, NAME@active or NAME@VERSION",
     ),
 ]
@@ -253,7 +254,12 @@ class PolicyOut(BaseModel):
 
 class PromoteIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    ref: PolicyRefText = Field(..., description="NAME@VERSION")
+    ref: str = Field(
+        ...,
+        max_length=266,
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,255}@[1-9][0-9]{0,8}$",
+        description="NAME@VERSION: the version to promote",
+    )
     reason: str | None = Field(None, max_length=512)
 
 
@@ -269,7 +275,11 @@ class FinetuneJobIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     policy: PolicyRefText
     since: str | None = Field(
-        None, max_length=16, pattern=r"^\s*\d+(\.\d+)?\s*[smhdw]\s*$", description="e.g. 24h, 7d: only recent segments"
+        None,
+        max_length=16,
+        # a positive duration of at most 999999 units: what ``parse_since`` accepts, nothing it refuses
+        pattern=r"^\s*(0*[1-9][0-9]{0,5}(\.[0-9]{1,6})?|0+\.[0-9]{0,5}[1-9][0-9]{0,5})\s*[smhdw]\s*$",
+        description="e.g. 24h, 7d: only recent segments",
     )
 
 
@@ -309,12 +319,16 @@ class FinetuneJobOut(BaseModel):
     ended_at: datetime | None
 
 
+# the registered tasks (``sim.registry``), so that the schema names every task the service accepts
+TaskName = Literal[tuple(TASKS)]
+
+
 class PolicyIn(BaseModel):
     """A policy folder (``model.safetensors`` + ``config.json``) on the server's disk."""
 
     model_config = ConfigDict(extra="forbid")
     path: str = Field(..., min_length=1, max_length=1024, pattern=r"^[^\x00]+$", description="no NUL characters")
-    task: str | None = Field(None, max_length=64, description="default: the task in the folder's config.json")
+    task: TaskName | None = Field(None, description="default: the task in the folder's config.json")
     parent_id: Id | None = None
 
 

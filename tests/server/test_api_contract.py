@@ -33,7 +33,7 @@ RAISES = {
     ("POST", "/api/v1/robots/{robot_id}/command"): {409, 429},
     ("GET", "/api/v1/segments/{segment_id}/mcap"): {409, 410},
     ("GET", "/api/v1/policies"): {404},  # an unknown lineage name
-    ("POST", "/api/v1/policies"): {404},  # an unknown parent_id
+    ("POST", "/api/v1/policies"): {404, 409},  # no folder or parent_id; a folder whose policy does not fit
     ("POST", "/api/v1/policies/promote"): {404},
     ("POST", "/api/v1/policies/rollback"): {404, 409},  # no parent to roll back to
     ("POST", "/api/v1/finetune-jobs"): {404, 409},  # an unknown policy; a job already running
@@ -247,16 +247,17 @@ def test_a_robot_that_exists_is_409_when_not_under_teleop_and_only_an_unknown_on
     assert httpx.get(robot, headers=_h(service, "viewer")).json()["mode"] == "autonomous"  # nothing changed
 
 
-def test_policy_paths_the_os_refuses_are_422(service):
-    """A NUL character (refused by the schema) or a name longer than the file system's limit (refused by the
-    OS when the folder is looked at) is a client's mistake, not a 500."""
+def test_policy_paths_the_schema_or_the_os_refuses_are_a_clients_mistake(service):
+    """A NUL character is refused by the schema (422); a name longer than the file system's limit is one
+    no folder can have (404, as any folder that is not there): never a 500."""
     api = service.url + "/api/v1/policies"
     folder = service.policy.parent  # exists: the OS reaches the long name
-    for path, loc in ((f"{folder}/x\x00y", ["body", "path"]), (f"{folder}/{'a' * 300}", None)):
-        r = service.client.post(api, json={"path": path}, headers=_h(service))
-        assert r.status_code == 422, r.text
-        detail = r.json()["detail"]
-        assert detail[0]["loc"] == loc if loc else "cannot be read: File name too long" in detail, detail
+    r = service.client.post(api, json={"path": f"{folder}/x\x00y"}, headers=_h(service))
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "path"], r.text
+    r = service.client.post(api, json={"path": f"{folder}/{'a' * 300}"}, headers=_h(service))
+    assert r.status_code == 404 and "cannot be read: File name too long" in r.json()["detail"], r.text
+    r = service.client.post(api, json={"path": str(folder / "not-there")}, headers=_h(service))
+    assert r.status_code == 404 and "no policy folder" in r.json()["detail"], r.text
 
 
 def test_a_405_names_every_method_the_path_allows():

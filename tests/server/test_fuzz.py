@@ -7,8 +7,11 @@ registration and activation): on in-process workers and one lift-cube robot they
 policy asks for help at every step, so claims, heartbeats, commands and releases meet a robot that is
 waiting or under teleop, not only 409s."""
 
+import subprocess
+import sys
 import time
 from collections import Counter
+from pathlib import Path
 
 import httpx
 import pytest
@@ -98,3 +101,17 @@ def test_fuzzing_the_openapi_finds_no_server_error_and_no_undocumented_status(se
     total = sum(sum(c.values()) for c in seen.values())
     print(f"fuzzed {len(operations)} operations, {total} requests, in {time.monotonic() - started:.1f} s: {seen}")
     assert all(seen.values())  # every operation was called
+
+
+def test_every_check_and_the_stateful_phase_find_no_failure(service):
+    """schemathesis's own runner, as a user runs it against the service: every check (schema-valid
+    requests accepted, invalid ones refused, the Allow header of a 405, ...), the coverage, fuzzing and
+    stateful phases (sequences that follow the document's links), 30 examples per operation, a fixed
+    seed."""
+    st = Path(sys.executable).with_name("st")
+    cmd = [str(st), "run", f"{service.url}/openapi.json", "--checks", "all", "--seed", "1", "-n", "30"]
+    cmd += ["--phases", "examples,coverage,fuzzing,stateful", "--no-color"]
+    cmd += ["-H", f"Authorization: Bearer {service.admin}"]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout[-6000:] + run.stderr[-2000:]
+    assert "Stateful" in run.stdout and "generated" in run.stdout  # the phases ran
