@@ -141,9 +141,14 @@ def test_a_new_policy_version_takes_over_at_the_next_episode(tmp_path):
     with pytest.raises(ServiceError) as missing:
         fleet.activate_policy(999)
     assert missing.value.status == 404
-    with pytest.raises(ServiceError) as broken:
+    with pytest.raises(ServiceError) as nowhere:
         fleet.register_policy(tmp_path / "nowhere")
-    assert broken.value.status == 422
+    assert nowhere.value.status == 404  # no policy there
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "config.json").write_text("{not json")
+    with pytest.raises(ServiceError) as broken:
+        fleet.register_policy(tmp_path / "broken")
+    assert broken.value.status == 422  # a policy folder that cannot be read
     fleet.stop()
 
 
