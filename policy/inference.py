@@ -57,7 +57,7 @@ class InferenceRequest:
 class InferenceResult:
     """plans: the request's, with the fresh chunks; scores: every signal's; wants: every calibrated
     signal's decision (B,); urgent: the asking signal's urgent requests (B,) or None; why: row -> the
-    asking signal's explanation, for the rows where it wants help."""
+    asking signal's explanation, for the rows not under teleop where it wants help (those that may ask)."""
 
     plans: torch.Tensor
     scores: dict[str, Scores]
@@ -98,9 +98,8 @@ def compute(policy: DiffusionPolicy, signals: Mapping[str, AssistanceSignal], re
         check = getattr(signal, "urgent", None)  # optional for duck-typed signals
         urgent = np.asarray(check(state), dtype=bool) if check is not None else np.zeros(len(req.robot_ids), bool)
         explain = getattr(signal, "explain", None)
-        why = {
-            int(j): explain(scores[req.asking], int(j)) if explain else None for j in np.flatnonzero(wants[req.asking])
-        }
+        asks = np.flatnonzero(wants[req.asking] & ~state.teleop)  # only a robot the policy drives asks
+        why = {int(j): explain(scores[req.asking], int(j)) if explain else None for j in asks}
     return InferenceResult(plans, scores, wants, urgent, why)
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from pathlib import Path
 
 from sqlalchemy.orm import sessionmaker
@@ -49,7 +48,7 @@ class PolicySwap:
         self.slots: dict[int, PolicySlot] = {}  # by policy version id
         self.assigned: dict[str, PolicySlot] = {}  # lineage -> the slot its robots move to at their next episode
         self._unloadable: dict[int, str] = {}  # active versions that failed to load, and why (not retried)
-        self._lineages: tuple[float, tuple] | None = None  # (when read, lineage summaries)
+        self._lineages = registry.LineageCache(sessions)
         self._swap_lock = threading.Lock()  # one policy load at a time (outside the fleet lock)
 
     def serve(self, path: Path, task: str) -> PolicySlot:
@@ -138,14 +137,7 @@ class PolicySwap:
     def lineages(self, max_age: float = 5.0) -> tuple[registry.LineageSummary, ...]:
         """The registry's lineages with their active version and last fine-tuning job (the console's
         view), read from the database at most every ``max_age`` seconds."""
-        now = time.monotonic()
-        if self._lineages is None or now - self._lineages[0] > max_age:
-            try:
-                self._lineages = (now, tuple(registry.lineage_summaries(self.sessions)))
-            except Exception:  # noqa: BLE001 - a database hiccup: the last view, tried again later
-                log.warning("reading the policy registry failed", exc_info=True)
-                self._lineages = (now, self._lineages[1] if self._lineages else ())
-        return self._lineages[1]
+        return self._lineages.get(max_age)
 
     def served_lineages(self) -> set[str]:
         with self.lock:

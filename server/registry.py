@@ -13,7 +13,9 @@ allow it, 422 a version whose files are unusable) and changes nothing when it do
 
 from __future__ import annotations
 
+import logging
 import re
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -323,3 +325,22 @@ def _lineage_days(ids: set[int], per_day: dict[tuple[int, str], Effort]) -> tupl
         if version_id in ids:
             days[day] = days.get(day, Effort()) + e
     return tuple(sorted(days.items()))
+
+
+class LineageCache:
+    """``lineage_summaries`` read from the database at most every ``max_age`` seconds (what the console
+    shows); a database hiccup keeps the last view and is tried again later."""
+
+    def __init__(self, sessions: sessionmaker) -> None:
+        self.sessions = sessions
+        self._last: tuple[float, tuple[LineageSummary, ...]] | None = None  # (when read, summaries)
+
+    def get(self, max_age: float = 5.0) -> tuple[LineageSummary, ...]:
+        now = time.monotonic()
+        if self._last is None or now - self._last[0] > max_age:
+            try:
+                self._last = (now, tuple(lineage_summaries(self.sessions)))
+            except Exception:  # noqa: BLE001 - a database hiccup: the last view, tried again later
+                logging.getLogger("hitl.registry").warning("reading the policy registry failed", exc_info=True)
+                self._last = (now, self._last[1] if self._last else ())
+        return self._last[1]

@@ -26,7 +26,6 @@ from __future__ import annotations
 import logging
 import pickle
 import threading
-import time
 from collections import deque
 from dataclasses import replace
 from multiprocessing import AuthenticationError
@@ -107,9 +106,8 @@ class RemoteFleet:
         self._stop = threading.Event()
         self._receiver: threading.Thread | None = None
         self._feed: Connection | None = None
-        self._lineages: tuple[float, tuple] | None = None
+        self._lineages = registry.LineageCache(sessions)
         self._timelines: dict[int, deque] = {}  # each robot's timeline, rebuilt from the tails
-        self.snapshots = 0
 
     # -- life -------------------------------------------------------------------------------------------------
     def start(self, timeout: float = 120.0) -> RemoteFleet:
@@ -173,7 +171,6 @@ class RemoteFleet:
                 self._metrics = snap.metrics
             if snap.schedule is not None:
                 self._schedule = snap.schedule
-        self.snapshots += 1
         self._live = True
         self._first.set()
 
@@ -228,14 +225,7 @@ class RemoteFleet:
         return self._schedule
 
     def lineages(self, max_age: float = 5.0) -> tuple[registry.LineageSummary, ...]:
-        now = time.monotonic()
-        if self._lineages is None or now - self._lineages[0] > max_age:
-            try:
-                self._lineages = (now, tuple(registry.lineage_summaries(self.sessions)))
-            except Exception:  # noqa: BLE001 - a database hiccup: the last view, tried again later
-                log.warning("reading the policy registry failed", exc_info=True)
-                self._lineages = (now, self._lineages[1] if self._lineages else ())
-        return self._lineages[1]
+        return self._lineages.get(max_age)
 
     # -- calls (to the runtime) -------------------------------------------------------------------------------
     def _call(self, method: str, *args):

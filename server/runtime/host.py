@@ -61,8 +61,6 @@ class RuntimeHost:
         self._joining: list[Connection] = []
         self._lock = threading.Lock()
         self._threads: list[threading.Thread] = []
-        self.calls = 0  # calls answered, for the benchmarks
-        self.publish_seconds = 0.0  # time spent building, pickling and sending snapshots
 
     @property
     def address(self) -> tuple[str, int]:
@@ -150,8 +148,6 @@ class RuntimeHost:
         except Exception:  # noqa: BLE001 - answered as the API answers an unexpected error, and logged here
             log.exception("fleet runtime: %s failed", call.method)
             return Reply(error=(500, f"{call.method} failed in the fleet runtime; see its log"))
-        finally:
-            self.calls += 1
         t = time.monotonic()
         view = portable(self.fleet.view(call.args[0])) if call.method in ROBOT_CALLS else None
         return Reply(value=value, t=t, view=view)
@@ -177,7 +173,6 @@ class RuntimeHost:
     def _publish_once(self, sent: dict, marks: dict, joining: list[Connection], slow: bool) -> tuple[dict, dict]:
         """One snapshot to the subscribers (the changes) and a full one to those ``joining``; returns the
         views sent and where their timelines stood, for the next."""
-        t0 = time.perf_counter()
         t = time.monotonic()
         views = self.fleet.views()
         robots = tuple(v.id for v in views)
@@ -197,7 +192,6 @@ class RuntimeHost:
             self._send(joining, blob)
             with self._lock:
                 self._subscribers.extend(c for c in joining if not c.closed)
-        self.publish_seconds += time.perf_counter() - t0
         return {v.id: v for v in views}, {v.id: timeline_since(v) for v in views}
 
     @staticmethod

@@ -159,35 +159,58 @@ def _standard_read(path):
         return [(c.topic, json.loads(m.data)) for _, c, m in reader.iter_messages()]
 
 
+def _asking_config(tmp_path, extra: str = ""):
+    """A config file of one lift-cube robot that asks at once (threshold -1), the settings it loads,
+    their database and an operator's headers; ``extra``: more TOML lines."""
+    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
+    config = tmp_path / "fleet.toml"
+    config.write_text(
+        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget_steps = 100\n{extra}'
+        f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
+    )
+    settings = Settings.load(config)
+    sessions = _sessions(settings)
+    return config, settings, sessions, {"Authorization": f"Bearer {create_token(sessions, 'op', 'operator')}"}
+
+
+def _drive(api: str, h: dict, n: int, dz: float) -> list:
+    """Claims robot 0 once it waits, then sends ``n`` distinct commands, each applied before the next;
+    returns their ``delta_pos`` in order."""
+    wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
+    assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
+    sent = []
+    for i in range(n):
+        before = httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"]
+        cmd = {"delta_pos": [0.0, 0.0, dz * (i + 1)], "gripper": -1}
+        assert httpx.post(api + "/robots/0/command", json=cmd, headers=h).status_code == 200
+        sent.append(cmd["delta_pos"])
+        wait_for(lambda b=before: httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"] > b)
+    return sent
+
+
+def _restart_to_recover(config, port: int, url: str) -> None:
+    """Starts the server on ``config`` and stops it once ready: its start recovers what a crash left open."""
+    proc = _serve(config, port)
+    try:
+        _ready(url)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+
+
 @pytest.mark.parametrize(
     ("sig", "status", "ended_by"),
     [(signal.SIGKILL, "recovered", "crash-recovered"), (signal.SIGTERM, "closed", "service-stopped")],
 )
 def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status, ended_by):
-    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
-    config = tmp_path / "fleet.toml"
-    config.write_text(
-        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget_steps = 100\nrecord_episodes = true\n'
-        f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
-    )
-    settings = Settings.load(config)
-    sessions = _sessions(settings)
-    h = {"Authorization": f"Bearer {create_token(sessions, 'op', 'operator')}"}
+    config, settings, sessions, h = _asking_config(tmp_path, "record_episodes = true\n")
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     api = url + "/api/v1"
     proc = _serve(config, port)
-    sent = []
     try:
         _ready(url)
-        wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
-        assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
-        for i in range(5):  # distinct commands, each applied before the next
-            before = httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"]
-            cmd = {"delta_pos": [0.0, 0.0, 0.001 * (i + 1)], "gripper": -1}
-            assert httpx.post(api + "/robots/0/command", json=cmd, headers=h).status_code == 200
-            sent.append(cmd["delta_pos"])
-            wait_for(lambda b=before: httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"] > b)
+        sent = _drive(api, h, 5, 0.001)
         time.sleep(1.5)  # past the 1 s flush interval: every accepted command is on disk
         proc.send_signal(sig)
         # the process ends by the signal (uvicorn re-raises SIGTERM once its graceful shutdown is done)
@@ -201,12 +224,7 @@ def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status, ended_by
             assert row.status == "open"  # the crash left it open, its file cut off:
             with pytest.raises(Exception, match="magic|footer|summary|EndOfFile|Invalid|record"):
                 _standard_read(resolve(settings.data_dir, row.path))
-        proc = _serve(config, port)  # the restart recovers it
-        try:
-            _ready(url)
-        finally:
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(timeout=60)
+        _restart_to_recover(config, port, url)
     with sessions() as s:
         row = s.query(SegmentRecord).one()
         assert row.status == status and row.ended_by == ended_by and row.steps >= len(sent)
@@ -291,42 +309,23 @@ def test_a_dead_inference_actor_holds_the_fleet_which_resumes_when_ray_restarts_
 
 
 def test_every_applied_teleop_step_survives_a_kill_right_after_it(tmp_path):
-    """The durability bound (docs/service.md): a step shown applied is in the takeover's file, even when
-    the server is killed at once, in the window the old one-second flush left open."""
-    policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
-    config = tmp_path / "fleet.toml"
-    config.write_text(
-        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget_steps = 100\nworker = "in-process"\n'
-        f'console = false\n[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
-    )
-    settings = Settings.load(config)
-    sessions = _sessions(settings)
-    h = {"Authorization": f"Bearer {create_token(sessions, 'op', 'operator')}"}
+    """The durability bound (docs/service.md), end to end: a step the robot's view shows as applied is in
+    the takeover's file even when the server is killed at once. (Here the denoising field makes each
+    step big enough to fill a chunk every second step, so the old flush policy kept most steps too;
+    ``tests/storage/test_storage.py`` tells the policies apart on small steps.)"""
+    config, settings, sessions, h = _asking_config(tmp_path, 'worker = "in-process"\nconsole = false\n')
     port = free_port()
-    url, sent = f"http://127.0.0.1:{port}", []
-    api = url + "/api/v1"
+    url = f"http://127.0.0.1:{port}"
     proc = _serve(config, port)
     try:
         _ready(url)
-        wait_for(lambda: httpx.get(api + "/robots/0", headers=h).json()["mode"] == "waiting")
-        assert httpx.post(api + "/robots/0/claim", headers=h).status_code == 200
-        for i in range(30):
-            before = httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"]
-            cmd = {"delta_pos": [0.0, 0.0, 0.0005 * (i + 1)], "gripper": -1}
-            assert httpx.post(api + "/robots/0/command", json=cmd, headers=h).status_code == 200
-            sent.append(cmd["delta_pos"])
-            wait_for(lambda b=before: httpx.get(api + "/robots/0", headers=h).json()["assisted_steps"] > b, 10)
+        sent = _drive(url + "/api/v1", h, 30, 0.0005)
         proc.send_signal(signal.SIGKILL)  # at once: the last step was applied a tick ago at most
         assert proc.wait(timeout=60) == -signal.SIGKILL
     finally:
         if proc.poll() is None:
             proc.kill()
-    proc = _serve(config, port)  # the restart rewrites the segment the kill left open
-    try:
-        _ready(url)
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=60)
+    _restart_to_recover(config, port, url)  # its start rewrites the segment the kill left open
     with sessions() as s:
         row = s.query(SegmentRecord).one()
         assert row.status == "recovered"
