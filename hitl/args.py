@@ -1,9 +1,10 @@
 """What several ``hitl`` subcommands share: argument types, the uncertainty flags, torch's thread
-count, and loading a policy with its calibration."""
+count, loading a policy with its calibration, and opening the service's database."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 UNCERTAINTY_ARGS = {  # flag -> UncertaintyConfig field; the defaults live in UncertaintyConfig only
     "samples": "num_samples",
@@ -72,3 +73,25 @@ def policy_with(args: argparse.Namespace):
         policy.load_state_dict(state)
         policy.eval()
     return policy, info, load_calibration(args.policy)
+
+
+def add_store_args(p: argparse.ArgumentParser) -> None:
+    """--config, --data-dir, --database-url: where the service keeps its data and database."""
+    p.add_argument("--config", type=Path, default=None, help="the service's TOML settings (data_dir, database)")
+    p.add_argument("--data-dir", type=Path, default=None, help="the service's data folder (default: settings)")
+    p.add_argument("--database-url", default=None, help="default: settings, DATABASE_URL or data_dir/hitl.db")
+
+
+def open_store(args: argparse.Namespace):
+    """(settings, sessions) with the migrations applied."""
+    from server.db import make_engine, migrate, session_factory
+    from server.settings import Settings
+
+    overrides = {}
+    if getattr(args, "data_dir", None):
+        overrides["data_dir"] = args.data_dir
+    if getattr(args, "database_url", None):
+        overrides["database_url"] = args.database_url
+    settings = Settings.load(args.config, **overrides)
+    migrate(settings.db_url)
+    return settings, session_factory(make_engine(settings.db_url))

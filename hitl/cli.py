@@ -16,6 +16,9 @@ The service (``server_commands``, ``registry_commands``):
   token         create or revoke API tokens
   policy        the policy registry: list, promote, rollback (to the version before)
   finetune      fine-tune on takeover segments, recalibrate, evaluate, gate
+Data exchange (``data_commands``):
+  export        lerobot: episodes and takeovers (with their labels) as a LeRobotDataset v3.0
+  import        lerobot: a LeRobotDataset with our state and action layout as demonstrations
 Benchmarks, reports and figures (``report_commands``, ``bench_commands``, ``console_commands``; the
 code is in ``bench/``):
   bench         uncertainty, signals, fleet, api, segments, loop, nights, finetune-load, hitl, hitl-service,
@@ -172,6 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     from hitl import (
         bench_commands,
         console_commands,
+        data_commands,
         policy_commands,
         registry_commands,
         report_commands,
@@ -187,6 +191,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_commands.register_finetune(bench)
     console_commands.register(sub, bench)
     registry_commands.register(sub)
+    data_commands.register(sub)
     return parser
 
 

@@ -18,22 +18,9 @@ import signal
 import sys
 from pathlib import Path
 
+from hitl.args import add_store_args, open_store
+
 EXIT_FAILED, EXIT_BAD_INPUT, EXIT_BUSY, EXIT_INTERRUPTED = 1, 2, 3, 130
-
-
-def _store(args: argparse.Namespace):
-    """(settings, sessions) with the migrations applied."""
-    from server.db import make_engine, migrate, session_factory
-    from server.settings import Settings
-
-    overrides = {}
-    if getattr(args, "data_dir", None):
-        overrides["data_dir"] = args.data_dir
-    if getattr(args, "database_url", None):
-        overrides["database_url"] = args.database_url
-    settings = Settings.load(args.config, **overrides)
-    migrate(settings.db_url)
-    return settings, session_factory(make_engine(settings.db_url))
 
 
 def _fail(command: str, exc: Exception) -> int:
@@ -62,7 +49,7 @@ def _cmd_policy_list(args: argparse.Namespace) -> int:
     from server import registry
     from server.errors import ServiceError
 
-    _, sessions = _store(args)
+    _, sessions = open_store(args)
     try:
         rows = registry.versions(sessions, args.name)
     except ServiceError as exc:
@@ -86,7 +73,7 @@ def _cmd_policy_promote(args: argparse.Namespace) -> int:
     from server import registry
     from server.errors import ServiceError
 
-    _, sessions = _store(args)
+    _, sessions = open_store(args)
     try:
         ref = registry.PolicyRef.parse(args.ref)
         if ref.version is None:
@@ -102,7 +89,7 @@ def _cmd_policy_rollback(args: argparse.Namespace) -> int:
     from server import registry
     from server.errors import ServiceError
 
-    _, sessions = _store(args)
+    _, sessions = open_store(args)
     try:
         row = registry.rollback(sessions, registry.PolicyRef.parse(args.name).name, args.reason)
     except ServiceError as exc:
@@ -171,7 +158,7 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
     if args.idle_priority and hasattr(os, "SCHED_IDLE"):  # Linux: the CPU only when nothing else wants it
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     try:
-        settings, sessions = _store(args)
+        settings, sessions = open_store(args)
         torch.set_num_threads(args.threads or settings.finetune.threads)
         request = JobRequest(
             policy=args.policy,
@@ -210,27 +197,22 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    def store_args(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--config", type=Path, default=None, help="the service's TOML settings (data_dir, database)")
-        p.add_argument("--data-dir", type=Path, default=None, help="the service's data folder (default: settings)")
-        p.add_argument("--database-url", default=None, help="default: settings, DATABASE_URL or data_dir/hitl.db")
-
     p = sub.add_parser("policy", help="the policy registry: list, promote, roll back")
     verbs = p.add_subparsers(dest="verb", required=True)
     q = verbs.add_parser("list", help="every version with its status, threshold, evaluation and reason")
     q.add_argument("name", nargs="?", default=None, help="one lineage only")
     q.add_argument("--json", action="store_true")
-    store_args(q)
+    add_store_args(q)
     q.set_defaults(func=_cmd_policy_list)
     q = verbs.add_parser("promote", help="make NAME@VERSION active (a running fleet swaps at each next episode)")
     q.add_argument("ref", help="NAME@VERSION")
     q.add_argument("--reason", default=None)
-    store_args(q)
+    add_store_args(q)
     q.set_defaults(func=_cmd_policy_promote)
     q = verbs.add_parser("rollback", help="retire NAME's active version and make its parent active again")
     q.add_argument("name")
     q.add_argument("--reason", default=None)
-    store_args(q)
+    add_store_args(q)
     q.set_defaults(func=_cmd_policy_rollback)
 
     p = sub.add_parser(
@@ -285,5 +267,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--trigger", default="cli", help=argparse.SUPPRESS)
     p.add_argument("--job", type=int, default=None, help=argparse.SUPPRESS)  # a queued job row (the API's)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    store_args(p)
+    add_store_args(p)
     p.set_defaults(func=_cmd_finetune)

@@ -22,6 +22,7 @@ from sqlalchemy import (
     UniqueConstraint,
     create_engine,
     event,
+    false,
     text,
 )
 from sqlalchemy.engine import Engine
@@ -171,7 +172,17 @@ class SegmentRecord(Base):
     meta: Mapped[dict] = mapped_column(JSON, default=dict)
     started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), nullable=True)
+    # the operator's verdict (migration 0006): label one of SEGMENT_LABELS or None; a discarded takeover
+    # keeps its file and is never trained on (server.finetune_plan)
+    label: Mapped[str | None] = mapped_column(String(8), nullable=True)
+    discarded: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    note: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    labelled_by: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    labelled_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), nullable=True)
 
+
+SEGMENT_LABELS = ("good", "bad")
+NOTE_MAX = 500
 
 JOB_STATUSES = ("queued", "running", "succeeded", "failed", "interrupted")
 

@@ -20,6 +20,7 @@ from policy.finetune import FinetuneConfig
 from server import registry
 from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
 from server.errors import ServiceError
+from server.labels import why_discarded
 from storage.takeovers import TakeoverSelection
 
 SOURCES = ("takeovers", "full-episodes")
@@ -131,15 +132,28 @@ def select_segments(
     sessions: sessionmaker, segments: list[SegmentRecord], selection: TakeoverSelection
 ) -> tuple[list[SegmentRecord], dict[int, str], list[SegmentRecord]]:
     """(kept, left out {segment id: why}, waiting: those whose episode has not ended) under
-    ``selection``; with ``successful_only``, by the outcome of each segment's episode."""
-    if not selection.successful_only:
-        return list(segments), {}, []
-    ids = {s.episode_id for s in segments if s.episode_id is not None}
+    ``selection``. A takeover an operator discarded is always left out (its flag is read now, not
+    from the rows given, so a discard made while a job was queued applies); with ``successful_only``,
+    so is one whose episode did not succeed."""
+    ids = [s.id for s in segments]
     with sessions() as db:
-        rows = db.execute(select(EpisodeRecord.id, EpisodeRecord.outcome).where(EpisodeRecord.id.in_(ids)))
+        current = {row.id: row for row in db.scalars(select(SegmentRecord).where(SegmentRecord.id.in_(ids)))}
+        db.expunge_all()
+    left_out: dict[int, str] = {}
+    candidates = []
+    for seg in (current.get(s.id, s) for s in segments):  # as the rows stand now
+        if (why := why_discarded(seg)) is not None:
+            left_out[seg.id] = why
+        else:
+            candidates.append(seg)
+    if not selection.successful_only:
+        return candidates, left_out, []
+    episode_ids = {s.episode_id for s in candidates if s.episode_id is not None}
+    with sessions() as db:
+        rows = db.execute(select(EpisodeRecord.id, EpisodeRecord.outcome).where(EpisodeRecord.id.in_(episode_ids)))
         outcomes = {i: outcome for i, outcome in rows}
-    kept, left_out, waiting = [], {}, []
-    for seg in segments:
+    kept, waiting = [], []
+    for seg in candidates:
         if seg.episode_id not in outcomes:
             left_out[seg.id] = "no episode recorded for it (successful episodes only)"
         elif outcomes[seg.episode_id] is None:

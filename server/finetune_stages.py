@@ -226,6 +226,7 @@ class JobRun:
                 "skipped_segment_ids": [s.id for s in selected if Path(s.path).name in takeovers.skipped],
                 "excluded": excluded,
                 "excluded_segment_ids": sorted(left_out),
+                "labels": {str(s.id): s.label for s in segs if s.label is not None},  # operators' verdicts used
             }
             counts = {
                 "segments": len(segs),

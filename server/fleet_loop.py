@@ -252,6 +252,7 @@ class ControlLoop:
             robot.last_result = step.uncertainty
         if step.scores:
             robot.scores = dict(step.scores)
+        self.recorder.step_decided(robot, step)
         if step.source == keys.SOURCE_OPERATOR:
             robot.assisted_steps += 1
             self.recorder.segment_step(robot, robot.frame, step)

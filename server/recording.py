@@ -8,7 +8,7 @@ File paths are stored relative to the service's ``data_dir`` and resolved agains
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -21,6 +21,9 @@ from policy.controller import RobotStep
 from server.db import EpisodeRecord, SegmentRecord
 from server.robot import Robot
 from sim.frame import RobotFrame
+from sim.registry import make_task
+from sim.spaces import ACTION_LABELS
+from storage import keys
 from storage.episodes import EpisodeReadError, EpisodeWriter, recover_episode
 from storage.segments import SegmentReadError, SegmentWriter, recover_segment
 
@@ -106,13 +109,26 @@ class Recorder:
         """Writes the step sent last with the success that followed it; opens the file at a reset."""
         if not self.record_episodes:
             return
-        if robot.pending_step is not None and robot.recorder is not None:
-            t, obs, action, pos, quat, gripper, source, bodies = robot.pending_step
-            robot.recorder.write_step(t, obs, action, pos, quat, gripper, frame.success, source, bodies)
+        if (p := robot.pending_step) is not None and robot.recorder is not None:
+            robot.recorder.write_step(
+                p.t, p.obs, p.action, p.pos, p.quat, p.gripper, frame.success, p.source, p.bodies, p.extras
+            )
         robot.pending_step = None
         if frame.t == 0 and not frame.done and robot.recorder is None:
             path = self.data_dir / "episodes" / f"robot{robot.id:03d}_ep{robot.episode_id:06d}.mcap"
-            meta = {"task": robot.task, "seed": robot.seed, "robot": robot.id, "policy": str(robot.slot.path)}
+            task = make_task(robot.task)  # cheap: names and specs only
+            meta = {
+                "task": robot.task,
+                "seed": robot.seed,
+                "robot": robot.id,
+                "episode": robot.episode_id,
+                "policy": str(robot.slot.path),
+                "policy_version": robot.slot.version,
+                "signal": robot.slot.controller.asking,
+                "obs_labels": task.obs_spec.labels(),
+                "action_labels": list(ACTION_LABELS),
+                "source": "fleet",
+            }
             robot.recorder = EpisodeWriter(path, meta, object_names=list(frame.bodies))
             with self.sessions() as s:
                 row = s.get(EpisodeRecord, robot.episode_id)
@@ -123,16 +139,31 @@ class Recorder:
     def action_sent(self, robot: Robot, action: np.ndarray, source: str) -> None:
         if robot.recorder is not None and robot.frame is not None:
             f = robot.frame
-            robot.pending_step = (
-                f.t,
-                f.obs,
-                np.asarray(action, np.float64),
-                f.pos,
-                f.quat,
-                f.gripper,
-                source,
-                f.bodies,
+            extras = {keys.STEP_POLICY_VERSION: robot.slot.version}
+            robot.pending_step = PendingStep(
+                f.t, f.obs, np.asarray(action, np.float64), f.pos, f.quat, f.gripper, source, f.bodies, extras
             )
+
+    def step_decided(self, robot: Robot, step: RobotStep) -> None:
+        """Adds what the controller decided about the step just sent to its record: the asking signal's
+        score and threshold, and on an operator step the command and the takeover it belongs to."""
+        if robot.pending_step is None:
+            return
+        extras = robot.pending_step.extras
+        controller = robot.slot.controller
+        asking = controller.asking
+        if asking is not None and asking in step.scores:
+            extras[keys.STEP_SCORE] = float(step.scores[asking])
+            extras[keys.STEP_THRESHOLD] = float(controller.signals[asking].threshold)
+        if step.command is not None and step.source == keys.SOURCE_OPERATOR:
+            cmd = step.command
+            extras[keys.STEP_COMMAND] = {
+                "delta_pos": [float(v) for v in cmd.delta_pos],
+                "delta_rot": [float(v) for v in cmd.delta_rot],
+                "gripper": None if cmd.gripper is None else float(cmd.gripper),
+            }
+            if robot.segment_id is not None:
+                extras[keys.STEP_TAKEOVER] = robot.segment_id
 
     def close_episode_file(self, robot: Robot, success: bool | None, steps: int, reason: str) -> None:
         rec, robot.recorder, robot.pending_step = robot.recorder, None, None
@@ -156,6 +187,8 @@ class Recorder:
             "task": robot.task,
             "reason": reason,
             "seed": robot.seed,
+            "signal": (asking := robot.slot.controller.asking),
+            "threshold": None if asking is None else float(robot.slot.controller.signals[asking].threshold),
         }
         robot.segment = SegmentWriter(path, meta, self.segment_flush_seconds, self.segment_fsync)
         with self.sessions() as s:
@@ -215,6 +248,21 @@ class Recorder:
                 row.status, row.ended_by, row.steps, row.ended_at = "closed", ended_by, writer.steps, datetime.now(UTC)
                 s.commit()
         robot.segment_id = None
+
+
+@dataclass
+class PendingStep:
+    """A step sent and not yet written: its outcome (success) comes with the next frame."""
+
+    t: int
+    obs: np.ndarray
+    action: np.ndarray
+    pos: np.ndarray
+    quat: np.ndarray
+    gripper: float
+    source: str
+    bodies: dict
+    extras: dict = field(default_factory=dict)  # ``keys.STEP_EXTRAS``
 
 
 @dataclass

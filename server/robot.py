@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field, fields, replace
+from typing import TYPE_CHECKING
 
 from policy.uncertainty import UncertaintyResult
 from server.commands import CommandMailbox
@@ -13,6 +14,9 @@ from server.workers import RobotWorker
 from sim.frame import RobotFrame
 from storage.episodes import EpisodeWriter
 from storage.segments import SegmentWriter
+
+if TYPE_CHECKING:  # server.recording imports this module
+    from server.recording import PendingStep
 
 MODES = ("autonomous", "waiting", "teleop", "paused", "done", "faulted")
 U_HISTORY = 300
@@ -92,7 +96,7 @@ class Robot:
     segment: SegmentWriter | None = None
     segment_id: int | None = None
     recorder: EpisodeWriter | None = None  # whole-episode recording (settings.record_episodes)
-    pending_step: tuple | None = None  # the step sent, written once its outcome arrives
+    pending_step: PendingStep | None = None  # the step sent, written once its outcome arrives
     view: RobotView | None = None  # what readers see (``Fleet._publish``)
     handovers: HandoverMailbox = field(default_factory=HandoverMailbox)  # claims, releases for the next tick
 

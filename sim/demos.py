@@ -178,7 +178,7 @@ def record_demos(
             meta = task.metadata() | {
                 "seed": s,
                 "expert": expert.name,
-                "obs_labels": _labels(task),
+                "obs_labels": task.obs_spec.labels(),
                 "action_labels": list(ACTION_LABELS),
                 "source": keys.SOURCE_EXPERT,
                 "execution_noise": {"pos": noise.pos, "rot": noise.rot} if noise else None,
@@ -205,13 +205,6 @@ def record_demos(
         else:
             _write_recipe(out, made)
     return paths, successes
-
-
-def _labels(task) -> list[str]:
-    out = []
-    for name, n in task.obs_spec.parts:
-        out += [name] if n == 1 else [f"{name}[{i}]" for i in range(n)]
-    return out
 
 
 @dataclass(frozen=True)

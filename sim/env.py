@@ -15,8 +15,9 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from sim.rotations import mat_to_rot6d, rot6d_to_rotvec, wxyz_to_xyzw
+from sim.rotations import mat_to_rot6d, rot6d_to_mat, rot6d_to_rotvec, wxyz_to_xyzw
 from sim.spaces import ActionSpace, TeleopCommand, TeleopTarget
 
 TABLE_TOP_Z = 0.8
@@ -52,6 +53,20 @@ class ObsSpec:
     @property
     def dim(self) -> int:
         return sum(n for _, n in self.parts)
+
+    def labels(self) -> list[str]:
+        """One name per observation dimension: ``part`` or ``part[i]``."""
+        return [name if n == 1 else f"{name}[{i}]" for name, n in self.parts for i in range(n)]
+
+    def ee_pose(self, states: np.ndarray) -> np.ndarray | None:
+        """(T, 7) end-effector position + quaternion xyzw from (T, dim) observations, from their
+        ``eef_pos`` and ``eef_rot6d`` parts; None when the observation has no such parts."""
+        parts = self.slices()
+        if "eef_pos" not in parts or "eef_rot6d" not in parts:
+            return None
+        states = np.asarray(states, np.float64).reshape(-1, self.dim)
+        quat = Rotation.from_matrix(rot6d_to_mat(states[:, parts["eef_rot6d"]])).as_quat().reshape(-1, 4)
+        return np.concatenate([states[:, parts["eef_pos"]], quat], axis=1)
 
     def slices(self) -> dict[str, slice]:
         out, i = {}, 0

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +62,14 @@ SCHEMAS: dict[str, dict] = {
             keys.STEP_GRIPPER: {"type": "number", "description": "finger gap (m)"},
             keys.STEP_SUCCESS: {"type": "boolean"},
             keys.STEP_SOURCE: {"type": "string", "enum": list(keys.SOURCES)},
+            keys.STEP_SCORE: {"type": "number"},
+            keys.STEP_THRESHOLD: {"type": "number"},
+            keys.STEP_POLICY_VERSION: {"type": "integer"},
+            keys.STEP_COMMAND: {
+                "type": "object",
+                "properties": {"delta_pos": _VEC, "delta_rot": _VEC, "gripper": {"type": ["number", "null"]}},
+            },
+            keys.STEP_TAKEOVER: {"type": "integer"},
         },
     },
     keys.SCHEMA_OUTCOME: {
@@ -120,6 +128,7 @@ class Episode:
     success: np.ndarray  # (T,) bool
     sources: list[str]
     outcome: dict | None  # None when the file was recovered from a truncation
+    extras: list[dict] = field(default_factory=list)  # per step: the ``keys.STEP_EXTRAS`` it carries
     recovered: bool = False
     playback_messages: int = 0
 
@@ -188,8 +197,14 @@ class EpisodeWriter:
         success: bool,
         source: str = keys.SOURCE_EXPERT,
         objects: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+        extras: dict | None = None,
     ) -> None:
-        """One control step: the observation before the action, and the action taken."""
+        """One control step: the observation before the action, and the action taken. ``extras``: the
+        optional ``keys.STEP_EXTRAS`` the fleet knows (asking score and threshold, policy version,
+        operator command, takeover id); other keys are refused."""
+        extras = {k: v for k, v in (extras or {}).items() if v is not None}
+        if unknown := set(extras) - set(keys.STEP_EXTRAS):
+            raise ValueError(f"unknown step fields {sorted(unknown)}; known: {keys.STEP_EXTRAS}")
         if source not in keys.SOURCES:
             raise ValueError(f"source must be one of {keys.SOURCES}, got {source!r}")
         obs = np.asarray(obs, dtype=np.float64)
@@ -209,7 +224,8 @@ class EpisodeWriter:
                 keys.STEP_GRIPPER: float(gripper),
                 keys.STEP_SUCCESS: bool(success),
                 keys.STEP_SOURCE: source,
-            },
+            }
+            | extras,
         )
         self._add_frame(ns, keys.EE_FRAME, ee_pos, ee_quat)
         self._add(self._ch_ee, ns, {"timestamp": stamp(ns), "frame_id": keys.WORLD_FRAME, "pose": pose})
@@ -309,6 +325,7 @@ def _decode(path: Path, messages) -> Episode:
         success=np.array([s[keys.STEP_SUCCESS] for s in steps], dtype=bool),
         sources=[s[keys.STEP_SOURCE] for s in steps],
         outcome=outcome,
+        extras=[{k: s[k] for k in keys.STEP_EXTRAS if k in s} for s in steps],
         playback_messages=playback,
     )
 

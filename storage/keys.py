@@ -18,6 +18,13 @@ STEP_EE_POSE = "ee_pose"  # {position: {x, y, z}, orientation: {x, y, z, w}} bef
 STEP_GRIPPER = "gripper"  # finger gap in metres
 STEP_SUCCESS = "success"  # task success after the step
 STEP_SOURCE = "source"  # who produced the action: see SOURCES
+# optional, in episodes the fleet records (absent in scripted demonstrations):
+STEP_SCORE = "score"  # the asking signal's score at this step (absent when the robot was not scored)
+STEP_THRESHOLD = "threshold"  # the asking signal's threshold then
+STEP_POLICY_VERSION = "policy_version"  # the registry id of the version that drove the robot
+STEP_COMMAND = "command"  # the operator's command, on an operator step: delta_pos, delta_rot, gripper
+STEP_TAKEOVER = "takeover"  # the takeover segment's id, on an operator step
+STEP_EXTRAS = (STEP_SCORE, STEP_THRESHOLD, STEP_POLICY_VERSION, STEP_COMMAND, STEP_TAKEOVER)
 
 SOURCE_EXPERT = "expert"  # scripted demonstrator
 SOURCE_POLICY = "policy"  # autonomous diffusion policy

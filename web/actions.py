@@ -12,16 +12,20 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from pydantic import ValidationError
+from sqlalchemy.orm import sessionmaker
 
 from server.api.schemas import TeleopCommandIn
 from server.errors import ServiceError
+from server.labels import LabelChange, LabelError, set_label
 from server.port import FleetPort
 from web.identity import Identity
 
 
 class ConsoleActions:
-    def __init__(self, fleet: FleetPort, identity: Identity) -> None:
-        self.fleet, self.identity = fleet, identity
+    """sessions: the service's database, for labelling takeovers (None: labels are refused)."""
+
+    def __init__(self, fleet: FleetPort, identity: Identity, sessions: sessionmaker | None = None) -> None:
+        self.fleet, self.identity, self.sessions = fleet, identity, sessions
 
     @property
     def can_operate(self) -> bool:
@@ -53,3 +57,13 @@ class ConsoleActions:
         except ValidationError as exc:
             raise ServiceError(422, "; ".join(e["msg"] for e in exc.errors())) from exc
         return self.fleet.command(robot_id, self.identity.name, body.to_command())
+
+    def label(self, segment_id: int, change: LabelChange) -> None:
+        """Labels a takeover (as ``PATCH /segments/{id}``: the operator role, the same checks)."""
+        self._need_operator("labelling a takeover")
+        if self.sessions is None:
+            raise ServiceError(503, "this console has no database to keep labels in")
+        try:
+            set_label(self.sessions, segment_id, self.identity.name, change)
+        except LabelError as exc:
+            raise ServiceError(exc.status, str(exc)) from exc

@@ -17,12 +17,14 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import viser
+from sqlalchemy.orm import sessionmaker
 
 from server.port import FleetPort
 from web.identity import HEADER, Identity, IdentitySigner
 from web.operator_panel import OperatorPanel
 from web.panels import FleetSnapshot
 from web.scene import SceneModels
+from web.takeovers import TakeoverBoard
 from web.viser_internals import close_client, handshake_headers, on_handshake, quiet, remove_share_handlers
 
 log = logging.getLogger("hitl.console")
@@ -40,9 +42,17 @@ class ConsoleStats:
 
 class Console:
     def __init__(
-        self, fleet: FleetPort, hz: float, signer: IdentitySigner | None = None, models: SceneModels | None = None
+        self,
+        fleet: FleetPort,
+        hz: float,
+        signer: IdentitySigner | None = None,
+        models: SceneModels | None = None,
+        sessions: sessionmaker | None = None,
     ):
+        """sessions: the service's database, for the robot's recent takeovers and their labels (None: the
+        console shows none)."""
         self.fleet = fleet
+        self.board = TakeoverBoard(sessions) if sessions is not None else None
         self.hz = hz if hz > 0 else DEFAULT_HZ
         self.signer = signer or IdentitySigner()
         self.models = models or SceneModels()
@@ -128,7 +138,7 @@ class Console:
             identity = self._identities.get(client.client_id)
         if identity is None:
             return
-        panel = OperatorPanel(client, identity, self.fleet, self.models, self._builds, self.hz)
+        panel = OperatorPanel(client, identity, self.fleet, self.models, self._builds, self.hz, self.board)
         with self._lock:  # the browser may have gone while its panel was being built
             if client.client_id in self._identities:
                 self._panels[client.client_id] = panel

@@ -25,7 +25,7 @@ class ConsoleExtension:
         app.state.console_sessions = SharedConsoleSessions(app.state.sessions) if fleet.remote else ConsoleSessions()
         app.state.console = None
         if settings.console:
-            app.state.console = Console(fleet, settings.control_hz)
+            app.state.console = Console(fleet, settings.control_hz, sessions=app.state.sessions)
             app.state.console.start()
 
     def stop(self, app: FastAPI) -> None:

@@ -1,4 +1,5 @@
-"""One browser's console: the fleet overview and the queue, the robot view, and the takeover inputs.
+"""One browser's console: the fleet overview and the queue, the robot view, the takeover inputs, and
+the robot's recent takeovers with their labels (``web.takeovers``).
 
 GUI callbacks only call ``ConsoleActions`` (the fleet's service methods with the API's checks) and set
 this panel's own state; ``tick`` (the console's thread, one atomic frame) sends what changed. A user
@@ -33,6 +34,7 @@ from web.panels import (
     timeline_data,
 )
 from web.scene import CAMERA_LOOK_AT, CAMERA_POSITION, RobotScene, SceneModels, pose_delta, probe_radius
+from web.takeovers import TakeoverBoard, TakeoverFolder
 
 log = logging.getLogger("hitl.console")
 
@@ -61,9 +63,11 @@ class OperatorPanel:
         models: SceneModels,
         builds: Executor,
         hz: float,
+        board: TakeoverBoard | None = None,
     ) -> None:
         self.client, self.identity, self.fleet, self.models, self.builds = client, identity, fleet, models, builds
-        self.actions = ConsoleActions(fleet, identity)
+        self.actions = ConsoleActions(fleet, identity, board.sessions if board is not None else None)
+        self.board = board
         self.hz = hz
         self.limits = TeleopLimits()
         self.closed = False
@@ -119,6 +123,9 @@ class OperatorPanel:
                     self.jog_buttons.append(button)
                 self.open_button = gui.add_button("Open gripper", disabled=True)
                 self.close_button = gui.add_button("Close gripper (G toggles)", disabled=True)
+            self.takeovers = (
+                TakeoverFolder(gui, self.board, self.actions, self._notify) if self.board is not None else None
+            )
             with gui.add_folder("Keys", expand_by_default=False):
                 gui.add_markdown(key_map_markdown())
         with tabs.add_tab("Fleet", viser.Icon.LIST):
@@ -260,6 +267,8 @@ class OperatorPanel:
             self._sent[(id(self.robot_select), "options")] = options
         self._set(self.robot_select, "value", label)
         self._robot(snap)
+        if self.takeovers is not None:
+            self.takeovers.show(self.robot_id)
 
     def _set(self, handle, attr: str, value) -> None:
         """Assigns a handle's property only when it changed: only what changed is sent."""

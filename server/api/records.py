@@ -1,4 +1,4 @@
-"""``/episodes``, ``/segments`` (list, filter, download the MCAP file)."""
+"""``/episodes``, ``/segments`` (list, filter, download the MCAP file, label a takeover)."""
 
 from __future__ import annotations
 
@@ -6,10 +6,11 @@ from fastapi import APIRouter, HTTPException, Query
 from fastapi.responses import FileResponse
 from sqlalchemy import select
 
-from server.api.deps import FleetDep, SessionsDep, Viewer
-from server.api.responses import AUTH, errors
-from server.api.schemas import EpisodeOut, Id, SegmentOut
+from server.api.deps import FleetDep, Operator, SessionsDep, Viewer
+from server.api.responses import AUTH, BODY, errors
+from server.api.schemas import EpisodeOut, Id, SegmentLabelIn, SegmentOut
 from server.db import EpisodeRecord, SegmentRecord
+from server.labels import LabelChange, LabelError, set_label
 from server.recording import resolve
 
 router = APIRouter(tags=["records"])
@@ -80,3 +81,25 @@ def download_segment(segment_id: Id, sessions: SessionsDep, fleet: FleetDep, _: 
     if not path.is_file():
         raise HTTPException(410, f"segment {segment_id}'s file is gone")
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+
+@router.patch(
+    "/segments/{segment_id}",
+    response_model=SegmentOut,
+    responses=errors(AUTH, BODY, 404, why={404: "no such segment"}),
+)
+def label_segment(segment_id: Id, body: SegmentLabelIn, sessions: SessionsDep, who: Operator) -> SegmentOut:
+    """Labels a takeover good or bad, discards it (kept on disk, never trained on) or notes it; records
+    who did and when. Only the fields sent change."""
+    given = body.model_fields_set
+    try:
+        change = LabelChange(
+            label=body.label if "label" in given else None,
+            clear_label="label" in given and body.label is None,
+            discarded=body.discarded if "discarded" in given else None,
+            note=body.note if "note" in given else None,
+        )
+        row = set_label(sessions, segment_id, who.name, change)
+    except LabelError as exc:
+        raise HTTPException(exc.status, str(exc)) from exc
+    return SegmentOut.model_validate(row)

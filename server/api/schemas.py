@@ -6,8 +6,9 @@ import math
 from datetime import datetime
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, ValidationInfo, field_validator
 
+from server.db import NOTE_MAX
 from sim.registry import TASKS
 from sim.spaces import TeleopCommand
 
@@ -216,6 +217,23 @@ class SegmentOut(BaseModel):
     steps: int
     started_at: datetime
     ended_at: datetime | None
+    label: Literal["good", "bad"] | None = Field(None, description="the operator's verdict on the takeover")
+    discarded: bool = Field(False, description="kept on disk, never trained on")
+    note: str | None = None
+    labelled_by: str | None = Field(None, description="who last changed the label, discard flag or note")
+    labelled_at: datetime | None = None
+
+
+class SegmentLabelIn(BaseModel):
+    """What to change about a takeover's label; fields left out stay as they are (``label: null`` removes
+    the verdict, an empty ``note`` the note)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"minProperties": 1})
+    label: Literal["good", "bad"] | None = Field(None, description="good or bad; null removes it")
+    discarded: StrictBool = Field(False, description="true: never train on it (the file is kept)")
+    note: str = Field(
+        "", max_length=NOTE_MAX, pattern=r"^[^\x00]*$", description="a short note (no NUL); empty removes it"
+    )
 
 
 PolicyName = Annotated[str, Field(min_length=1, max_length=256, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,255}$")]

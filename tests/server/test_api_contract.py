@@ -71,7 +71,10 @@ def _operations(openapi):
 
 
 def _call(svc, method, path, role="admin", **kw):
+    """A request with a valid body where the route takes one (a command, a takeover's label)."""
     body = {"json": COMMAND} if path.endswith("/command") else {}
+    if method.upper() == "PATCH" and "/segments/" in path:
+        body = {"json": {"label": "good"}}
     return svc.client.request(method, svc.url + path, headers=_h(svc, role), **(body | kw))
 
 
@@ -89,6 +92,7 @@ def test_every_id_is_bounded_to_the_database_range(service):
         ("/api/v1/robots/{robot_id}", "robot_id"),
         ("/api/v1/robots/{robot_id}/command", "robot_id"),
         ("/api/v1/segments/{segment_id}/mcap", "segment_id"),
+        ("/api/v1/segments/{segment_id}", "segment_id"),
         ("/api/v1/policies/{version}/activate", "version"),
         ("/api/v1/segments", "robot_id"),
         ("/api/v1/episodes", "robot_id"),

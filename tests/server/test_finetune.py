@@ -279,6 +279,57 @@ def test_a_job_whose_takeovers_are_all_left_out_or_waiting_fails_and_says_why(st
     assert [v.ref for v in registry.versions(sessions, "lift-cube")] == ["lift-cube@1"]
 
 
+def test_a_discarded_takeover_is_never_trained_on_and_the_manifest_says_who_discarded_it(store):
+    from server.labels import LabelChange, set_label
+
+    sessions, data_dir, parent = store
+    with sessions() as s:
+        ids = {Path(seg.path).stem: seg.id for seg in s.scalars(select(SegmentRecord))}
+    set_label(sessions, ids["good-2"], "alice", LabelChange(label="bad", note="fumbled the grasp"))
+    set_label(sessions, ids["good-2"], "bob", LabelChange(discarded=True))  # who: the last to change it
+    set_label(sessions, ids["good-1"], "alice", LabelChange(label="good"))
+    lines = []
+    runner = FinetuneRunner(sessions, data_dir, progress=False, report=lines.append)
+    [summary] = runner.run(JobRequest(policy="lift-cube", config=TINY))
+    assert summary["status"] == "succeeded", summary
+    with sessions() as s:
+        job = s.get(FinetuneJob, summary["job"])
+        discarded = s.get(SegmentRecord, ids["good-2"])
+    assert job.data["counts"]["segments"] == 1 and job.data["counts"]["excluded"] == 1
+    why = job.data["excluded"]["good-2.mcap"]
+    assert why.startswith("discarded by bob at ") and discarded.labelled_at.isoformat(timespec="seconds") in why
+    assert any("left out segment good-2.mcap: discarded by bob" in line for line in lines)
+    child = registry.resolve(sessions, summary["version"])
+    assert child.manifest["segment_ids"] == [ids["good-1"]]
+    assert child.manifest["excluded_segment_ids"] == [ids["good-2"]]
+    assert child.manifest["labels"] == {str(ids["good-1"]): "good"}  # the verdicts on what it learned from
+    assert (data_dir / "segments" / "good-2.mcap").is_file()  # discarded, not deleted
+    # a discarded takeover is not news: it starts no nightly job
+    write_segment(data_dir / "segments" / "later.mcap", make_task(TASK).obs_spec.dim, seed=9)
+    with sessions() as s:
+        later = _closed_segment("later", parent.id, datetime.now(UTC))
+        s.add(later)
+        s.commit()
+        later_id = later.id
+    set_label(sessions, later_id, "alice", LabelChange(discarded=True))
+    assert runner.plan(JobRequest(config=TINY)) == []
+
+
+def test_a_discard_made_while_a_job_is_planned_still_applies(store):
+    """The selection reads the flag when the job loads its data, not from the rows it was planned with."""
+    from server.finetune_plan import select_segments
+    from server.labels import LabelChange, set_label
+    from storage.takeovers import TakeoverSelection
+
+    sessions, _, _ = store
+    with sessions() as s:
+        planned = list(s.scalars(select(SegmentRecord).where(SegmentRecord.status == "closed")))
+    set_label(sessions, planned[0].id, "carol", LabelChange(discarded=True))
+    kept, left_out, waiting = select_segments(sessions, planned, TakeoverSelection())
+    assert [s.id for s in kept] == [s.id for s in planned[1:]] and not waiting
+    assert list(left_out) == [planned[0].id] and left_out[planned[0].id].startswith("discarded by carol")
+
+
 def test_since_parses_durations():
     assert parse_since("24h") == timedelta(hours=24) and parse_since("30m") == timedelta(minutes=30)
     assert parse_since("7d") == timedelta(days=7)

@@ -54,7 +54,7 @@ def _columns(engine, table: str) -> set[str]:
 def test_each_migration_applies_in_turn_and_keeps_the_rows_written_before_it(empty_url):
     cfg = _config(empty_url)
     revisions = _revisions(cfg)
-    assert revisions[:5] == ["0001", "0002", "0003", "0004", "0005"]
+    assert revisions[:6] == ["0001", "0002", "0003", "0004", "0005", "0006"]
     engine = make_engine(empty_url)
     try:
         command.upgrade(cfg, "0001")
@@ -78,6 +78,9 @@ def test_each_migration_applies_in_turn_and_keeps_the_rows_written_before_it(emp
                 assert {"finetune_jobs", "job_leases"} <= set(inspect(engine).get_table_names())
             if rev == "0005":
                 assert "console_sessions" in set(inspect(engine).get_table_names())
+            if rev == "0006":
+                labels = {"label", "discarded", "note", "labelled_by", "labelled_at"}
+                assert _columns(engine, "segments") == segment_columns | {"ended_by"} | labels
     finally:
         engine.dispose()
 

@@ -36,9 +36,13 @@ class Served:
     def __init__(self, url: str, tokens: dict[str, str]) -> None:
         self.url, self.tokens = url, tokens
 
-    def api(self, path: str, role: str = "operator", method: str = "GET"):
+    def api(self, path: str, role: str = "operator", method: str = "GET", json: dict | None = None):
         answer = httpx.request(
-            method, f"{self.url}/api/v1{path}", headers={"Authorization": f"Bearer {self.tokens[role]}"}, timeout=30
+            method,
+            f"{self.url}/api/v1{path}",
+            headers={"Authorization": f"Bearer {self.tokens[role]}"},
+            json=json,
+            timeout=30,
         )
         answer.raise_for_status()
         return answer.json()

@@ -64,3 +64,38 @@ def test_a_viewer_watches_read_only(served, browser):
     assert _request(served)["holder"] is None and _robot(served)["mode"] == "waiting"
     assert page.get_by_role("button", name="+X (I)").is_disabled()
     page.close()
+
+
+def test_label_a_takeover_from_the_console(served, browser):
+    """The robot's recent takeovers with their labels; good, discard and a note set from the page are what
+    the REST API then reports, with the console user as who set them."""
+    served.api("/robots/0/reset", role="admin", method="POST")
+    wait_for(lambda: _request(served) is not None and _request(served)["holder"] is None, timeout=120)
+    served.api("/robots/0/claim", method="POST")
+    wait_for(lambda: _robot(served)["mode"] == "teleop", timeout=60)
+    served.api("/robots/0/command", method="POST", json={"delta_pos": [0.0, 0.0, 0.01], "gripper": -1.0})
+    wait_for(lambda: _robot(served)["assisted_steps"] > 0, timeout=60)
+    served.api("/robots/0/release", method="POST")
+    # this takeover: the newest segment (earlier tests made others), once the hand-back has closed it
+    segment = wait_for(lambda: (s := served.api("/segments")[0])["status"] == "closed" and s, 60)
+    assert segment["operator"] == "operator-browser" and segment["steps"] > 0
+
+    page = log_in(browser, served, "operator")
+    page.get_by_role("tab", name="Robot").click()
+    page.get_by_role("cell", name="unlabelled").first.wait_for()  # the takeover, in the list, not yet labelled
+    good = page.get_by_role("button", name="Good")
+    wait_for(lambda: good.is_enabled(), timeout=90)
+    good.click()
+    labelled = lambda: next(s for s in served.api("/segments") if s["id"] == segment["id"])  # noqa: E731
+    wait_for(lambda: labelled()["label"] == "good", timeout=30)
+    assert labelled()["labelled_by"] == "operator-browser"
+    page.get_by_role("button", name="Discard").click()
+    wait_for(lambda: labelled()["discarded"] is True, timeout=30)
+    restore = page.get_by_role("button", name="Restore")
+    wait_for(lambda: restore.is_enabled(), timeout=30)  # the list now shows it discarded
+    page.get_by_role("cell", name="good, discarded").first.wait_for()
+    note = page.get_by_text("Note", exact=True).locator("xpath=following::input[1]")  # viser's label is a sibling
+    note.fill("fumbled the grasp, recovered")
+    page.get_by_role("button", name="Save note").click()
+    wait_for(lambda: labelled()["note"] == "fumbled the grasp, recovered", timeout=30)
+    page.close()
