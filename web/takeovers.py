@@ -8,6 +8,8 @@ a label through ``ConsoleActions.label`` (the operator role, as ``PATCH /segment
 
 from __future__ import annotations
 
+import html
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -47,14 +49,23 @@ class TakeoverRow:
         return ", ".join(parts)
 
 
+_MARKDOWN = re.compile(r"([\\`*_\[\]{}()#+!|~>-])")
+
+
+def cell(text: str | None) -> str:
+    """Free text (an operator's note or name) as one table cell that renders as the text itself: viser
+    renders a markdown's raw HTML unsanitized, so the HTML is escaped, and so are markdown's own marks."""
+    flat = " ".join((text or "").split())
+    return _MARKDOWN.sub(r"\\\1", html.escape(flat, quote=True))
+
+
 def takeovers_markdown(rows: list[TakeoverRow]) -> str:
     if not rows:
         return "_No takeover of this robot yet._"
     lines = ["| # | operator | steps | ended | label | note |", "|---|---|---|---|---|---|"]
     for r in rows:
-        note = (r.note or "").replace("|", "/").replace("\n", " ")
         ended = r.ended_by or ("recording" if r.status == "open" else r.status)
-        lines.append(f"| {r.id} | {r.operator} | {r.steps} | {ended} | {r.verdict} | {note} |")
+        lines.append(f"| {r.id} | {cell(r.operator)} | {r.steps} | {ended} | {r.verdict} | {cell(r.note)} |")
     return "\n".join(lines)
 
 

@@ -164,3 +164,22 @@ def test_the_fleet_tab_shows_each_lineage_and_its_last_job():
     assert "cup-stack@2 · 1 candidate(s)" in rows[1] and "#7 running · train 40%" in rows[1]
     assert "#9 kept as candidate (2026-11-24T03:12+00:00): not better on open-drawer" in rows[2]
     assert rows[3].endswith("| #3 failed: no usable sample |")
+
+
+def test_the_takeover_list_shows_notes_and_names_as_text_never_as_html():
+    """viser renders a markdown's raw HTML unsanitized: an operator's note must not become markup in the
+    other operators' consoles."""
+    import markdown_it
+
+    from web.takeovers import TakeoverRow, takeovers_markdown
+
+    note = "<img src=x onerror=alert(1)> **loud** | [link](javascript:alert(2)) a-b\nsecond line"
+    row = TakeoverRow(3, "eve<script>", 4, "closed", "hand-back", "bad", True, note, "eve")
+    text = takeovers_markdown([row])
+    assert "<img" not in text and "<script" not in text
+    rendered = markdown_it.MarkdownIt().enable("table").render(text)
+    assert "<img" not in rendered and "<script" not in rendered and "<a " not in rendered
+    assert "<strong>loud" not in rendered and rendered.count("<td>") == 6  # the pipe did not split the cell
+    cells = rendered.split("<td>")
+    assert "&lt;img src=x onerror=alert(1)&gt; **loud** | [link](javascript:alert(2)) a-b second line" in cells[6]
+    assert "bad, <strong>discarded</strong>" in rendered  # our own markup still renders
