@@ -6,6 +6,7 @@ U timeline for uPlot. ``web.console`` puts them on screen and sends only what ch
 
 from __future__ import annotations
 
+import html
 import math
 import time
 from dataclasses import dataclass, field
@@ -37,6 +38,11 @@ KEY_MAP = (
     ("R", "hand back"),
 )
 KEY_NOTE = "W/A/S/D/Q/E and the arrow keys move the camera."
+
+
+def plain(text: str) -> str:
+    """A name (a token's, set by an admin) as text: viser renders a markdown's raw HTML unsanitized."""
+    return html.escape(text, quote=False)
 
 
 @dataclass(frozen=True)
@@ -83,7 +89,7 @@ def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
         req = snapshot.request(rid)
         mode = MODE_BADGES.get(v.mode, v.mode)
         if req is not None and req.holder:
-            mode += f" ({'you' if req.holder == me else req.holder})"
+            mode += f" ({'you' if req.holder == me else plain(req.holder)})"
         lines.append(
             f"| {rid} | {v.task} | {mode} | {_num(score)} / {_num(threshold)}{flag} "
             f"| {_num(u)} / {_num(v.slot.threshold)} "
@@ -154,7 +160,7 @@ def lineage_history_markdown(ln: LineageSummary) -> list[str]:
 
 def queue_row(req: AssistanceRequest, view: RobotView | None, now: float, me: str) -> str:
     task = view.task if view is not None else "?"
-    held = f" · held by **{'you' if req.holder == me else req.holder}**" if req.holder else ""
+    held = f" · held by **{'you' if req.holder == me else plain(req.holder)}**" if req.holder else ""
     return f"**Robot {req.robot_id}** · {task} · waiting {now - req.created:.0f} s{held}  \n{req.reason}"
 
 
@@ -181,7 +187,7 @@ def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, m
         lease = ""
         if req.holder:
             left = max(0.0, (req.lease_until or now) - now)
-            lease = f" · held by **{'you' if req.holder == me else req.holder}** (lease {left:.0f} s)"
+            lease = f" · held by **{'you' if req.holder == me else plain(req.holder)}** (lease {left:.0f} s)"
         lines.append(f"**Asked:** {req.reason}{lease}")
     if view.mode == "teleop" and view.teleop_left is not None:
         lines.append(f"**Budget:** {view.teleop_left} operator step{'s' if view.teleop_left != 1 else ''} left")

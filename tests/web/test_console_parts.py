@@ -183,3 +183,9 @@ def test_the_takeover_list_shows_notes_and_names_as_text_never_as_html():
     cells = rendered.split("<td>")
     assert "&lt;img src=x onerror=alert(1)&gt; **loud** | [link](javascript:alert(2)) a-b second line" in cells[6]
     assert "bad, <strong>discarded</strong>" in rendered  # our own markup still renders
+    # a lease holder's name (a token's) is text too
+    from server.assistance import AssistanceRequest
+    from web.panels import queue_row
+
+    req = AssistanceRequest(1, 0, 1.0, 0.5, "spread: over", created=0.0, holder="<img src=x onerror=alert(3)>")
+    assert "<img" not in queue_row(req, None, 1.0, "someone else") and "&lt;img" in queue_row(req, None, 1.0, "me")
