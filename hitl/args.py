@@ -4,7 +4,10 @@ count, loading a policy with its calibration, and opening the service's database
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
+
+EXIT_BAD_INPUT = 2
 
 UNCERTAINTY_ARGS = {  # flag -> UncertaintyConfig field; the defaults live in UncertaintyConfig only
     "samples": "num_samples",
@@ -95,3 +98,9 @@ def open_store(args: argparse.Namespace):
     settings = Settings.load(args.config, **overrides)
     migrate(settings.db_url)
     return settings, session_factory(make_engine(settings.db_url))
+
+
+def fail(command: str, exc: Exception) -> int:
+    """Prints ``hitl COMMAND: error: ...`` to stderr; returns EXIT_BAD_INPUT."""
+    print(f"hitl {command}: error: {getattr(exc, 'message', exc)}", file=sys.stderr)
+    return EXIT_BAD_INPUT

@@ -6,13 +6,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
-from hitl.args import add_store_args, open_store, positive_int
-
-EXIT_BAD_INPUT = 2
+from hitl.args import add_store_args, fail, open_store, positive_int
 
 
 def _when(text: str) -> datetime:
@@ -21,11 +18,6 @@ def _when(text: str) -> datetime:
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"not an ISO 8601 time: {text!r}") from exc
     return when if when.tzinfo is not None else when.replace(tzinfo=UTC)
-
-
-def _fail(command: str, exc: Exception) -> int:
-    print(f"hitl {command}: error: {getattr(exc, 'message', exc)}", file=sys.stderr)
-    return EXIT_BAD_INPUT
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
@@ -76,7 +68,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
             progress=progress,
         )
     except (ExportError, ServiceError, EpisodeReadError, FileNotFoundError, ValueError) as exc:
-        return _fail("export lerobot", exc)
+        return fail("export lerobot", exc)
     print(json.dumps(report.as_dict() | {"skipped": skipped}, indent=2))
     return 0
 
@@ -87,9 +79,9 @@ def _cmd_import(args: argparse.Namespace) -> int:
     from storage.lerobot.reader import LeRobotImportError, import_dataset
 
     if args.task not in TASKS:
-        return _fail("import lerobot", ValueError(f"unknown task {args.task!r}; registered: {', '.join(TASKS)}"))
+        return fail("import lerobot", ValueError(f"unknown task {args.task!r}; registered: {', '.join(TASKS)}"))
     spec = make_task(args.task).obs_spec
-    pose = spec.ee_pose if {"eef_pos", "eef_rot6d"} <= set(spec.slices()) else None
+    pose = spec.ee_pose if spec.has_ee_pose else None
     try:
         report = import_dataset(
             args.root,
@@ -102,7 +94,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
             progress=not args.quiet,
         )
     except (LeRobotImportError, OSError) as exc:
-        return _fail("import lerobot", exc)
+        return fail("import lerobot", exc)
     print(json.dumps(report.as_dict(), indent=2))
     return 0
 

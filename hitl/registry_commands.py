@@ -18,14 +18,9 @@ import signal
 import sys
 from pathlib import Path
 
-from hitl.args import add_store_args, open_store
+from hitl.args import add_store_args, fail, open_store
 
-EXIT_FAILED, EXIT_BAD_INPUT, EXIT_BUSY, EXIT_INTERRUPTED = 1, 2, 3, 130
-
-
-def _fail(command: str, exc: Exception) -> int:
-    print(f"hitl {command}: error: {getattr(exc, 'message', exc)}", file=sys.stderr)
-    return EXIT_BAD_INPUT
+EXIT_FAILED, EXIT_BUSY, EXIT_INTERRUPTED = 1, 3, 130
 
 
 def _version_doc(row) -> dict:
@@ -53,7 +48,7 @@ def _cmd_policy_list(args: argparse.Namespace) -> int:
     try:
         rows = registry.versions(sessions, args.name)
     except ServiceError as exc:
-        return _fail("policy list", exc)
+        return fail("policy list", exc)
     docs = [_version_doc(r) for r in rows]
     if args.json:
         print(json.dumps(docs, indent=2))
@@ -80,7 +75,7 @@ def _cmd_policy_promote(args: argparse.Namespace) -> int:
             raise ServiceError(422, f"promote which version? give NAME@VERSION, e.g. {ref.name}@2")
         row = registry.promote(sessions, ref, args.reason or "promoted with hitl policy promote")
     except ServiceError as exc:
-        return _fail("policy promote", exc)
+        return fail("policy promote", exc)
     print(json.dumps({"active": row.ref, "path": row.path}))
     return 0
 
@@ -93,7 +88,7 @@ def _cmd_policy_rollback(args: argparse.Namespace) -> int:
     try:
         row = registry.rollback(sessions, registry.PolicyRef.parse(args.name).name, args.reason)
     except ServiceError as exc:
-        return _fail("policy rollback", exc)
+        return fail("policy rollback", exc)
     print(json.dumps({"active": row.ref, "path": row.path}))
     return 0
 
@@ -192,7 +187,7 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
         print("hitl finetune: interrupted; the job resumes from its last checkpoint at the next run", file=sys.stderr)
         return EXIT_INTERRUPTED
     except (ServiceError, ValueError, FileNotFoundError, KeyError) as exc:
-        return _fail("finetune", exc)
+        return fail("finetune", exc)
     return EXIT_FAILED if any(r["status"] != "succeeded" for r in results) else 0
 
 

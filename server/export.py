@@ -90,13 +90,14 @@ def collect(sessions: sessionmaker, data_dir: Path, query: ExportQuery, progress
 
     out = Collected()
     whole: set[int] = set()
+    with_takeovers = {seg.episode_id for seg in segments}
     for ep in tqdm(episodes, desc="episodes", unit="ep", disable=not progress):
         name = f"episode {ep.id}"
         if ep.outcome is None:
             out.skipped[name] = "still running"
             continue
         if ep.path is None:
-            if not any(seg.episode_id == ep.id for seg in segments):
+            if ep.id not in with_takeovers:
                 out.skipped[name] = "its file was not recorded (record_episodes is off); no takeover in it"
             continue
         try:

@@ -13,21 +13,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
-from sqlalchemy import select
 from sqlalchemy.orm import sessionmaker
 
 from server.db import NOTE_MAX, SEGMENT_LABELS, SegmentRecord
+from server.errors import ServiceError
 from storage.lerobot.attempts import TakeoverLabel
 
 DISCARDED_WHY = "discarded by {who} at {when}"
-
-
-class LabelError(Exception):
-    """status: the HTTP status that says what went wrong (404: no such takeover, 422: bad value)."""
-
-    def __init__(self, status: int, message: str) -> None:
-        super().__init__(message)
-        self.status = status
 
 
 @dataclass(frozen=True)
@@ -42,11 +34,11 @@ class LabelChange:
 
     def __post_init__(self) -> None:
         if self.label is not None and self.label not in SEGMENT_LABELS:
-            raise LabelError(422, f"label must be one of {SEGMENT_LABELS} (or null to clear it), got {self.label!r}")
+            raise ServiceError(422, f"label must be one of {SEGMENT_LABELS} (or null to clear it), got {self.label!r}")
         if self.note is not None and len(self.note) > NOTE_MAX:
-            raise LabelError(422, f"a note is at most {NOTE_MAX} characters, got {len(self.note)}")
+            raise ServiceError(422, f"a note is at most {NOTE_MAX} characters, got {len(self.note)}")
         if self.note is not None and "\x00" in self.note:
-            raise LabelError(422, "a note cannot hold a NUL character")
+            raise ServiceError(422, "a note cannot hold a NUL character")
 
     @property
     def empty(self) -> bool:
@@ -54,13 +46,13 @@ class LabelChange:
 
 
 def set_label(sessions: sessionmaker, segment_id: int, who: str, change: LabelChange) -> SegmentRecord:
-    """Applies ``change`` to the takeover and returns its row; raises LabelError (404, 422)."""
+    """Applies ``change`` to the takeover and returns its row; raises ServiceError (404, 422)."""
     if change.empty:
-        raise LabelError(422, "nothing to change: give label, discarded or note")
+        raise ServiceError(422, "nothing to change: give label, discarded or note")
     with sessions() as s:
         row = s.get(SegmentRecord, segment_id)
         if row is None:
-            raise LabelError(404, f"no takeover segment {segment_id}")
+            raise ServiceError(404, f"no takeover segment {segment_id}")
         if change.label is not None or change.clear_label:
             row.label = change.label
         if change.discarded is not None:
@@ -76,15 +68,6 @@ def set_label(sessions: sessionmaker, segment_id: int, who: str, change: LabelCh
 
 def label_of(row: SegmentRecord) -> TakeoverLabel:
     return TakeoverLabel(row.label, bool(row.discarded), row.note, row.labelled_by, row.labelled_at)
-
-
-def labels(sessions: sessionmaker, segment_ids: list[int]) -> dict[int, TakeoverLabel]:
-    """segment id -> its label, for the ids given (unknown ids are absent)."""
-    if not segment_ids:
-        return {}
-    with sessions() as s:
-        rows = s.scalars(select(SegmentRecord).where(SegmentRecord.id.in_(segment_ids)))
-        return {row.id: label_of(row) for row in rows}
 
 
 def why_discarded(row: SegmentRecord) -> str | None:

@@ -58,12 +58,17 @@ class ObsSpec:
         """One name per observation dimension: ``part`` or ``part[i]``."""
         return [name if n == 1 else f"{name}[{i}]" for name, n in self.parts for i in range(n)]
 
-    def ee_pose(self, states: np.ndarray) -> np.ndarray | None:
+    @property
+    def has_ee_pose(self) -> bool:
+        """The observation holds the end-effector pose (``eef_pos`` and ``eef_rot6d``): ``ee_pose`` works."""
+        return {"eef_pos", "eef_rot6d"} <= {name for name, _ in self.parts}
+
+    def ee_pose(self, states: np.ndarray) -> np.ndarray:
         """(T, 7) end-effector position + quaternion xyzw from (T, dim) observations, from their
-        ``eef_pos`` and ``eef_rot6d`` parts; None when the observation has no such parts."""
+        ``eef_pos`` and ``eef_rot6d`` parts (``has_ee_pose``)."""
+        if not self.has_ee_pose:
+            raise ValueError("the observation has no eef_pos and eef_rot6d parts")
         parts = self.slices()
-        if "eef_pos" not in parts or "eef_rot6d" not in parts:
-            return None
         states = np.asarray(states, np.float64).reshape(-1, self.dim)
         quat = Rotation.from_matrix(rot6d_to_mat(states[:, parts["eef_rot6d"]])).as_quat().reshape(-1, 4)
         return np.concatenate([states[:, parts["eef_pos"]], quat], axis=1)

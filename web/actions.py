@@ -16,7 +16,7 @@ from sqlalchemy.orm import sessionmaker
 
 from server.api.schemas import TeleopCommandIn
 from server.errors import ServiceError
-from server.labels import LabelChange, LabelError, set_label
+from server.labels import LabelChange, set_label
 from server.port import FleetPort
 from web.identity import Identity
 
@@ -63,7 +63,4 @@ class ConsoleActions:
         self._need_operator("labelling a takeover")
         if self.sessions is None:
             raise ServiceError(503, "this console has no database to keep labels in")
-        try:
-            set_label(self.sessions, segment_id, self.identity.name, change)
-        except LabelError as exc:
-            raise ServiceError(exc.status, str(exc)) from exc
+        set_label(self.sessions, segment_id, self.identity.name, change)

@@ -20,7 +20,7 @@ from sqlalchemy.orm import sessionmaker
 
 from server.db import SegmentRecord
 from server.errors import ServiceError
-from server.labels import LabelChange, LabelError
+from server.labels import LabelChange
 from web.actions import ConsoleActions
 
 RECENT = 5  # takeovers shown per robot
@@ -135,8 +135,8 @@ class TakeoverFolder:
             return
         try:
             self.actions.label(row.id, LabelChange(**change))
-        except (ServiceError, LabelError) as exc:
-            self.notify(f"Label refused ({exc.status})", str(exc), "red")
+        except ServiceError as exc:
+            self.notify(f"Label refused ({exc.status})", exc.message, "red")
             return
         self.board.changed(rid)
         self.notify(f"Takeover {row.id}", "label saved", "green")

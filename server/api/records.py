@@ -10,7 +10,7 @@ from server.api.deps import FleetDep, Operator, SessionsDep, Viewer
 from server.api.responses import AUTH, BODY, errors
 from server.api.schemas import EpisodeOut, Id, SegmentLabelIn, SegmentOut
 from server.db import EpisodeRecord, SegmentRecord
-from server.labels import LabelChange, LabelError, set_label
+from server.labels import LabelChange, set_label
 from server.recording import resolve
 
 router = APIRouter(tags=["records"])
@@ -92,14 +92,10 @@ def label_segment(segment_id: Id, body: SegmentLabelIn, sessions: SessionsDep, w
     """Labels a takeover good or bad, discards it (kept on disk, never trained on) or notes it; records
     who did and when. Only the fields sent change."""
     given = body.model_fields_set
-    try:
-        change = LabelChange(
-            label=body.label if "label" in given else None,
-            clear_label="label" in given and body.label is None,
-            discarded=body.discarded if "discarded" in given else None,
-            note=body.note if "note" in given else None,
-        )
-        row = set_label(sessions, segment_id, who.name, change)
-    except LabelError as exc:
-        raise HTTPException(exc.status, str(exc)) from exc
-    return SegmentOut.model_validate(row)
+    change = LabelChange(
+        label=body.label if "label" in given else None,
+        clear_label="label" in given and body.label is None,
+        discarded=body.discarded if "discarded" in given else None,
+        note=body.note if "note" in given else None,
+    )
+    return SegmentOut.model_validate(set_label(sessions, segment_id, who.name, change))

@@ -22,7 +22,6 @@ from storage.episodes import Episode, read_episode
 from storage.segments import Segment
 
 COMMAND_DIM = 7  # delta_pos (3), delta_rot (3), gripper
-LABELS = ("good", "bad")
 LABEL_CODES = {"good": 1, "bad": -1, None: 0}  # the per-frame code of a takeover's label
 NO_TAKEOVER = -1
 
@@ -59,7 +58,6 @@ class Attempt:
     ee_pose: np.ndarray  # (T, 7) position + quaternion xyzw
     gripper: np.ndarray  # (T,) finger gap (m)
     action: np.ndarray  # (T, 10)
-    done: np.ndarray  # (T,) bool: the attempt ends after this frame
     success: np.ndarray  # (T,) bool: the task succeeded after this frame
     action_source: np.ndarray  # (T,) int64, index into keys.SOURCES
     command: np.ndarray  # (T, 7) the operator's command (zeros where there was none)
@@ -99,9 +97,6 @@ def from_episode(ep: Episode, labels: dict[int, TakeoverLabel] | None = None, me
     n = len(ep)
     extras = ep.extras or [{} for _ in range(n)]
     scored = np.array([keys.STEP_SCORE in e for e in extras], bool)
-    done = np.zeros(n, bool)
-    if n:
-        done[-1] = True
     takeover = np.array([e.get(keys.STEP_TAKEOVER, NO_TAKEOVER) for e in extras], np.int64)
     fallback_version = int(ep.meta.get("policy_version") or 0)
     present = {int(t) for t in takeover if t != NO_TAKEOVER}
@@ -113,7 +108,6 @@ def from_episode(ep: Episode, labels: dict[int, TakeoverLabel] | None = None, me
         ee_pose=ep.ee_pose,
         gripper=ep.gripper,
         action=ep.actions,
-        done=done,
         success=ep.success.astype(bool),
         action_source=np.array([keys.SOURCES.index(s) for s in ep.sources], np.int64),
         command=np.array([_command_row(e.get(keys.STEP_COMMAND)) for e in extras], np.float64).reshape(n, COMMAND_DIM),
@@ -148,9 +142,6 @@ def from_segment(
         return scores.get(signal) if signal else None
 
     scores = [score(s) for s in steps]
-    done = np.zeros(n, bool)
-    if n:
-        done[-1] = True
     return Attempt(
         task=str(seg.meta.get("task", "")),
         kind="takeover",
@@ -159,7 +150,6 @@ def from_segment(
         ee_pose=np.array([list(s["position"]) + list(s["quaternion"]) for s in steps], np.float64).reshape(n, 7),
         gripper=np.zeros(n),  # not in a segment's steps
         action=np.array([s[keys.STEP_ACTION] for s in steps], np.float64).reshape(n, -1),
-        done=done,
         success=np.zeros(n, bool),
         action_source=np.full(n, keys.SOURCES.index(keys.SOURCE_OPERATOR), np.int64),
         command=np.array([_command_row(s.get("command")) for s in steps], np.float64).reshape(n, COMMAND_DIM),

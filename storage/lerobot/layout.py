@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,7 +35,7 @@ import pyarrow.parquet as pq
 from tqdm import tqdm
 
 from storage import keys
-from storage.lerobot.attempts import COMMAND_DIM, Attempt
+from storage.lerobot.attempts import COMMAND_DIM, LABEL_CODES, Attempt
 
 CODEBASE_VERSION = "v3.0"
 INFO_PATH = "meta/info.json"
@@ -84,7 +85,7 @@ def features(obs_labels: list[str], obs_dim: int, action_labels: list[str], acti
         THRESHOLD: {"dtype": "float32", "shape": [1], "names": None},
         POLICY_VERSION: {"dtype": "int64", "shape": [1], "names": None},
         TAKEOVER: {"dtype": "int64", "shape": [1], "names": None},
-        LABEL: {"dtype": "int64", "shape": [1], "names": {"codes": {"good": 1, "bad": -1, "none": 0}}},
+        LABEL: {"dtype": "int64", "shape": [1], "names": {"codes": {k or "none": v for k, v in LABEL_CODES.items()}}},
         DISCARDED: {"dtype": "bool", "shape": [1], "names": None},
     }
     return ours | DEFAULT_FEATURES
@@ -99,7 +100,7 @@ def _columns(a: Attempt, episode_index: int, start: int, task_index: int, fps: i
         EE_POSE: a.ee_pose.astype(np.float32),
         GRIPPER: a.gripper.astype(np.float32),
         ACTION: a.action.astype(np.float32),
-        DONE: a.done.astype(bool),
+        DONE: frame == n - 1,  # the attempt ends after its last frame
         SUCCESS: a.success.astype(bool),
         INTERVENTION: a.intervention,
         SOURCE: a.action_source.astype(np.int64),
@@ -286,7 +287,5 @@ def write_dataset(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    kinds: dict[str, int] = {}
-    for a in attempts:
-        kinds[a.kind] = kinds.get(a.kind, 0) + 1
+    kinds = dict(Counter(a.kind for a in attempts))
     return ExportReport(root, len(attempts), start, task_strings, files, kinds)

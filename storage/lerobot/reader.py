@@ -141,10 +141,13 @@ def import_dataset(
     except Exception as exc:  # noqa: BLE001 - pyarrow raises several types for a broken file
         raise LeRobotImportError(f"{root}: unreadable data file ({type(exc).__name__}: {exc})") from exc
     columns = {c: np.concatenate([_column(t, c) for t in tables]) for c in wanted}
-    episode = columns["episode_index"].astype(np.int64)
-    order = np.lexsort((columns["frame_index"], episode))
+    order = np.lexsort((columns["frame_index"], columns["episode_index"]))
     columns = {c: v[order] for c, v in columns.items()}
     episode = columns["episode_index"].astype(np.int64)
+    finite = np.isfinite(columns[STATE]).all(axis=1) & np.isfinite(columns[ACTION]).all(axis=1)
+    if not finite.all():  # before any file is written
+        bad = sorted({int(i) for i in episode[~finite]})
+        raise LeRobotImportError(f"{root}: episode(s) {bad[:10]} have non-finite state or action values")
     starts = np.flatnonzero(np.r_[True, episode[1:] != episode[:-1]])
     ends = np.r_[starts[1:], len(episode)]
     source_codes = _names(feats[SOURCE]) if SOURCE in feats else None
@@ -154,8 +157,6 @@ def import_dataset(
         idx = int(episode[s])
         state = columns[STATE][s:e].astype(np.float64)
         action = columns[ACTION][s:e].astype(np.float64)
-        if not (np.isfinite(state).all() and np.isfinite(action).all()):
-            raise LeRobotImportError(f"{root}: episode {idx} has non-finite state or action values")
         pose = columns[EE_POSE][s:e].astype(np.float64) if EE_POSE in columns else pose_from_state(state)
         gripper = columns[GRIPPER][s:e].reshape(-1) if GRIPPER in columns else np.zeros(e - s)
         success = columns[SUCCESS][s:e].astype(bool).reshape(-1) if SUCCESS in columns else np.zeros(e - s, bool)

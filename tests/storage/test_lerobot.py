@@ -251,3 +251,20 @@ def test_an_episode_built_from_a_recording_keeps_what_the_fleet_knew(folder):
     assert set(a.takeovers) == {7}  # labels of takeovers that are not in the episode are not carried
     codes, discarded = a.label_codes()
     assert codes.tolist() == [0] * 4 + [-1] * 4 + [0] * 6 and not discarded.any()
+
+
+def test_non_finite_values_are_refused_before_any_episode_is_written(folder, tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    root = tmp_path / "ds"
+    write_dataset(from_folder(folder), root, FPS, list(ACTION_LABELS), progress=False)
+    [path] = (root / "data").glob("chunk-*/file-*.parquet")
+    table = pq.read_table(path)
+    state = np.array(table.column("observation.state").to_pylist(), np.float32)
+    state[-1, 0] = np.nan  # the last episode's last frame: the earlier episodes are fine
+    column = pa.FixedSizeListArray.from_arrays(pa.array(state.reshape(-1)), state.shape[1])
+    pq.write_table(table.set_column(0, "observation.state", column), path)
+    with pytest.raises(LeRobotImportError, match=r"episode\(s\) \[2\] have non-finite"):
+        _import(root, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
