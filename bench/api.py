@@ -22,12 +22,12 @@ Phases:
    ``bench.fleet`` does for its teleoperated robot): there is no API route that makes a robot ask.
 
 The fleet runs as in ``hitl bench fleet``: ``assistance = false`` (no robot asks by itself, so the
-fleet's mix of modes is the benchmark's, not the policy's) and ``trigger_mode = "continuous"`` (an
+fleet's mix of modes is the benchmark's, not the policy's) and ``hand_back = "continuous"`` (an
 operator keeps a robot until release).
 
 Control rate: the per-robot action period, the time between two actions the fleet sends to the same
 robot (``Robot.action_periods``), pooled over all robots, and the env steps per second of the fleet
-(``Fleet.env_steps``); both read from the fleet object in this process, idle and under load.
+(``ControlLoop.env_steps``); both read from the fleet object in this process, idle and under load.
 
 Errors: non-2xx answers other than the protocol's 429 ("send it again after the next tick") for a
 command, WebSocket error replies, exceptions and timeouts (10 s). Refusals the protocol expects are
@@ -49,8 +49,8 @@ from pathlib import Path
 from bench.harness import (
     ClientProcess,
     LocalService,
+    LogCount,
     Window,
-    _LogCount,
     dist,
     fresh_database,
     measure,
@@ -58,6 +58,7 @@ from bench.harness import (
     seconds_bar,
     wait_stepping,
 )
+from sim.spaces import TeleopCommand
 
 API = "/api/v1"
 POLL_KINDS = ("robots", "robot", "view", "queue", "metrics")
@@ -110,7 +111,7 @@ class _Stats:
 
 
 def _command(sign: int) -> dict:
-    return {"delta_pos": [0.002 * sign, 0.0, 0.0], "delta_rot": [0.0, 0.0, 0.0], "gripper": -1.0}
+    return TeleopCommand.checked((0.002 * sign, 0.0, 0.0), (0.0, 0.0, 0.0), -1.0).to_dict()
 
 
 async def _until(t: float) -> None:
@@ -312,7 +313,7 @@ def _service(settings, api_workers: int, tmp: Path):
     from service.replicas import ReplicatedService
 
     settings = settings.model_copy(update={"port": 0})
-    log, runtime_log = _LogCount(tmp / "runtime.log"), logging.getLogger("hitl")  # the API processes: api.log
+    log, runtime_log = LogCount(tmp / "runtime.log"), logging.getLogger("hitl")  # the API processes: api.log
     runtime_log.addHandler(log)
     try:
         with ReplicatedService(settings, api_workers, log_file=tmp / "api.log") as svc:
@@ -351,7 +352,7 @@ def bench_api(
             robots=[RobotGroup(task=task, count=robots, policy=policy)],
             worker=worker,
             assistance=False,  # no robot asks by itself: the mix of modes is the benchmark's
-            trigger_mode="continuous",  # an operator keeps a robot until release
+            hand_back="continuous",  # an operator keeps a robot until release
         )
         sessions, engine = fresh_database(settings)
         n_operators = plan["websocket_streams"] + plan["queue_cyclers"]
@@ -371,6 +372,7 @@ def bench_api(
         finally:
             bar.close()
     config = {"robots": robots, "clients": clients, "seconds": seconds, "idle_seconds": idle_seconds, "task": task}
+    # the report's keys keep their names (docs/results/service/api.json): trigger_mode is the setting hand_back
     config.update(worker=worker, control_hz=control_hz, assistance=False, trigger_mode="continuous")
     config.update(api_workers=api_workers)
     return _report(config, plan, idle, load, clients_result, log)
@@ -429,7 +431,7 @@ def _report(config: dict, plan: dict, idle: dict, load: dict, res: dict, log: di
         "refused_as_expected": res["refused"],
         "control": {
             "definition": "action period: seconds between two actions the fleet sends to the same robot, pooled "
-            "over all robots (Robot.action_periods); env steps/s: Fleet.env_steps",
+            "over all robots (Robot.action_periods); env steps/s: ControlLoop.env_steps",
             "idle": idle,
             "load": load,
         },

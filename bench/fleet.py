@@ -1,10 +1,10 @@
-"""``hitl bench fleet``: the fleet runtime against the raw physics it runs on.
+"""``hitl bench fleet``: the fleet (``server.fleet``) against the raw physics it runs on.
 
 For each fleet size N, measured in the same run:
 
 - raw: N bare worker processes stepping their task with hold actions as fast as they can (the
   physics limit of this machine);
-- fleet: the fleet runtime free-running (no control-rate sleep). No robot asks for help
+- fleet: the fleet free-running (no control-rate sleep). No robot asks for help
   (``assistance = false``: a waiting robot only holds, which would make the fleet cheaper the
   longer it runs), so every robot but one is driven by the policy and scored at every step.
   Robot 0 is under teleop (taken over again at each new episode) and receives operator commands
@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from bench.procstats import descendant_pids, memory_mb, processes_cpu_seconds, worker_pids
 from server.db import make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.fleet import Fleet
-from server.procstats import descendant_pids, memory_mb, processes_cpu_seconds, worker_pids
 from server.settings import RobotGroup, Settings
 from server.workers import WORKERS
 from sim.spaces import TeleopCommand
@@ -112,7 +112,7 @@ def fleet_throughput(
         device=device,
         inference=inference,
         assistance=False,  # every other robot stays under the policy: the full per-step cost, all the time
-        trigger_mode="continuous",  # with assistance off, the operator keeps robot 0 until its episode ends
+        hand_back="continuous",  # with assistance off, the operator keeps robot 0 until its episode ends
     )
     migrate(settings.db_url)
     rss_before = memory_mb()["rss_mb"]
@@ -148,20 +148,20 @@ def fleet_throughput(
         remote0 = _inference_times(remote)
         workers_cpu0, others_cpu0 = processes_cpu_seconds(pids), processes_cpu_seconds(others)
         with fleet.lock:
-            steps0 = fleet.env_steps
+            steps0 = fleet.loop.env_steps
             ticks0 = fleet.ticks
-            fleet.tick_periods.clear()
+            fleet.loop.tick_periods.clear()
             fleet.robots[0].latencies.clear()
             fleet.robots[0].action_periods.clear()
-            cpu0 = fleet.loop_cpu_seconds
+            cpu0 = fleet.loop.loop_cpu_seconds
         time.sleep(seconds)
         with fleet.lock:
-            steps = fleet.env_steps - steps0
+            steps = fleet.loop.env_steps - steps0
             ticks = fleet.ticks - ticks0
-            periods = np.array(fleet.tick_periods)
+            periods = np.array(fleet.loop.tick_periods)
             lat = np.array(fleet.robots[0].latencies)
             teleop_periods = np.array(fleet.robots[0].action_periods)
-            cpu = fleet.loop_cpu_seconds - cpu0
+            cpu = fleet.loop.loop_cpu_seconds - cpu0
         workers_cpu = processes_cpu_seconds(pids) - workers_cpu0
         others_cpu = processes_cpu_seconds(others) - others_cpu0
         if overhead is not None:

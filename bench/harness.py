@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from server.procstats import TICKS_PER_SECOND, cpu_ticks, worker_pids
+from bench.procstats import TICKS_PER_SECOND, cpu_ticks, worker_pids
 
 
-class _LogCount(logging.FileHandler):
+class LogCount(logging.FileHandler):
     """The server's log, to a file; counts warnings and errors and keeps the first few."""
 
     def __init__(self, path: Path) -> None:
@@ -62,7 +62,7 @@ class LocalService:
         self.sock.bind(("127.0.0.1", 0))
         self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}"
         self.app = create_app(settings)
-        self.log = _LogCount(log_path)
+        self.log = LogCount(log_path)
         self._redact = RedactTokens()
         self._loggers = [logging.getLogger(n) for n in ("uvicorn", "hitl")]
         self._saved = [(lg, lg.propagate, lg.level) for lg in self._loggers]
@@ -146,8 +146,8 @@ class Window:
         with f.lock:
             for r in f.robots.values():
                 r.action_periods.clear()
-            f.tick_periods.clear()
-            self.steps0, self.ticks0, self.loop_cpu0 = f.env_steps, f.ticks, f.loop_cpu_seconds
+            f.loop.tick_periods.clear()
+            self.steps0, self.ticks0, self.loop_cpu0 = f.loop.env_steps, f.ticks, f.loop.loop_cpu_seconds
         self.periods, self.ticks, self.modes, self.samples = [], [], Counter(), 0
         self.t0, self.cpu0 = time.monotonic(), cpu_ticks(self.pids)
 
@@ -158,8 +158,8 @@ class Window:
                 self.periods += r.action_periods
                 r.action_periods.clear()
                 self.modes[r.mode] += 1
-            self.ticks += f.tick_periods
-            f.tick_periods.clear()
+            self.ticks += f.loop.tick_periods
+            f.loop.tick_periods.clear()
         self.samples += 1
 
     def stop(self) -> dict:
@@ -170,11 +170,11 @@ class Window:
             "seconds": seconds,
             "action_period": dist(periods),
             "control_hz_p50": float(1 / np.quantile(periods, 0.5)) if len(periods) else None,
-            "env_steps_per_s": (f.env_steps - self.steps0) / seconds,
+            "env_steps_per_s": (f.loop.env_steps - self.steps0) / seconds,
             "ticks_per_s": (f.ticks - self.ticks0) / seconds,
             "tick_period": dist(self.ticks),
             "robots_by_mode_mean": {m: n / self.samples for m, n in sorted(self.modes.items())},
-            "control_loop_cpu_share": (f.loop_cpu_seconds - self.loop_cpu0) / seconds,
+            "control_loop_cpu_share": (f.loop.loop_cpu_seconds - self.loop_cpu0) / seconds,
             "cpu_cores": self._cores(seconds),
         }
 

@@ -27,10 +27,9 @@ from pathlib import Path
 
 from sqlalchemy import select
 
-from bench.loop import _wait_ready, launch_service
-from server.db import EpisodeRecord
-from server.operator_bot import OperatorBot
-from server.recording import FINISHED
+from bench.loop import launch_service, wait_ready
+from client.operator_bot import OperatorBot
+from server.db import FINISHED, EpisodeRecord
 from server.settings import Settings
 
 KEYS = ("success", "assisted_steps", "events")
@@ -44,7 +43,7 @@ def fleet_seeds(seed: int, robots: int) -> list[int]:
 def _config(path: Path, task: str, policy: Path, robots: int, signal: str, budget: int, data_dir: Path) -> None:
     path.write_text(
         f'data_dir = "{data_dir}"\nworker = "in-process"\ncontrol_hz = 50\ntrace_policies = false\n'
-        f'signal = "{signal}"\ntrigger_mode = "budgeted"\nbudget_steps = {budget}\ncooldown_steps = 0\n'
+        f'signal = "{signal}"\nhand_back = "budgeted"\nbudget = {budget}\ncooldown = 0\n'
         "freeze_idle = true\nbatch_invariant = true\nseed = 0\nlease_seconds = 60\n"
         f'[[robots]]\ntask = "{task}"\ncount = {robots}\npolicy = "{Path(policy).resolve()}"\n'
     )
@@ -71,7 +70,7 @@ def run_service(
     thread = threading.Thread(target=bot.run, kwargs={"stop": stop.is_set, "idle_sleep": 0.02}, daemon=True)
     done: dict[int, dict] = {}
     try:
-        _wait_ready(url, proc, timeout=300)
+        wait_ready(url, proc, timeout=300)
         thread.start()
         deadline = time.monotonic() + timeout
         last = -1
@@ -119,7 +118,7 @@ def run_in_process(task: str, policy_dir: Path, seeds: list[int], signal: str, b
     torch.set_num_threads(1)
     policy, _ = load_policy(policy_dir)
     driver = load_signal(policy, policy_dir, signal)
-    cfg = AssistConfig(mode="budgeted", budget=budget, n_envs=len(seeds), seed=0, batch_invariant=True)
+    cfg = AssistConfig(hand_back="budgeted", budget=budget, n_envs=len(seeds), seed=0, batch_invariant=True)
     episodes, _ = run_assisted(policy, task, seeds, driver, None, cfg, progress=False)
     return {e.seed: {"success": e.success, "assisted_steps": e.assisted_steps, "events": e.events} for e in episodes}
 

@@ -28,10 +28,9 @@ import httpx
 from sqlalchemy import select
 from tqdm import tqdm
 
+from client.operator_bot import OperatorBot
 from server.auth import create_token
-from server.db import EpisodeRecord, SegmentRecord, make_engine, migrate, session_factory
-from server.operator_bot import OperatorBot
-from server.recording import FINISHED
+from server.db import FINISHED, EpisodeRecord, SegmentRecord, make_engine, migrate, session_factory
 from server.settings import Settings
 
 DEMO_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "demo.toml"
@@ -45,7 +44,9 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _wait_ready(url: str, proc: subprocess.Popen, timeout: float) -> None:
+def wait_ready(url: str, proc: subprocess.Popen, timeout: float) -> None:
+    """Waits until the service ``proc`` started answers ``/readyz`` at ``url`` (RuntimeError if it exits
+    first or is not ready after ``timeout`` seconds)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -62,7 +63,7 @@ def _wait_ready(url: str, proc: subprocess.Popen, timeout: float) -> None:
 def launch_service(config: Path, settings: Settings, env: dict[str, str] | None = None):
     """Prepares ``settings``' database and an operator token for the bot, then starts
     ``hitl serve --config config`` on a free 127.0.0.1 port with ``env`` on top of this process's
-    environment. Returns (process, url, sessions, token); the service is not ready yet (``_wait_ready``)."""
+    environment. Returns (process, url, sessions, token); the service is not ready yet (``wait_ready``)."""
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     migrate(settings.db_url)
     sessions = session_factory(make_engine(settings.db_url))
@@ -82,18 +83,18 @@ def run_loop(
     bot: bool = True,
     progress: bool = True,
 ) -> dict:
-    """Serves ``config`` with ``trigger_mode = mode`` for ``seconds`` (after readiness) with the operator
+    """Serves ``config`` with ``hand_back = mode`` for ``seconds`` (after readiness) with the operator
     bot helping (``bot``), then stops the service with SIGTERM and reports what its database holds."""
     config = Path(config) if config is not None else DEMO_CONFIG
     data_dir = Path(tempfile.mkdtemp(prefix="hitl-loop-")) if data_dir is None else Path(data_dir)
-    overrides = {"HITL_DATA_DIR": str(data_dir), "HITL_TRIGGER_MODE": mode, **(env or {})}
-    settings = Settings.load(config, data_dir=data_dir, trigger_mode=mode)
+    overrides = {"HITL_DATA_DIR": str(data_dir), "HITL_HAND_BACK": mode, **(env or {})}
+    settings = Settings.load(config, data_dir=data_dir, hand_back=mode)
     since = datetime.now(UTC)  # only this run's episodes and takeovers are reported (the folder may be reused)
     proc, url, sessions, token = launch_service(config, settings, overrides)
     operator = OperatorBot(url, token) if bot else None
     stop = threading.Event()
     try:
-        _wait_ready(url, proc, timeout=300)
+        wait_ready(url, proc, timeout=300)
         started = time.monotonic()
         thread = None
         if operator is not None:

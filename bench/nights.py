@@ -7,10 +7,10 @@ started that day. Then the night:
 
 1. the operator goes home and an admin pauses every robot (``POST /robots/{id}/pause``): the job has
    the machine, as a lab's fleet stands still overnight;
-2. the benchmark moves the service's clock (``[finetune] clock_file``, ``server.scheduler.FileClock``)
+2. the benchmark moves the service's clock (``[finetune] clock_file``, ``server.finetune.scheduler.FileClock``)
    to the schedule's next due time, and the service's own scheduler starts the nightly job: the
    benchmark never starts it itself. The job fine-tunes every lineage with new takeovers, recalibrates,
-   evaluates on its held-out seeds and applies its gate (``server.finetune_job``);
+   evaluates on its held-out seeds and applies its gate (``server.finetune.job``);
 3. once the job's process has ended (``GET /finetune-schedule``), the morning: a robot not yet on its
    lineage's active version is reset until the fleet has loaded it (the hot swap moves a robot at its
    next episode); the day then resets every robot, so each starts afresh on what the registry serves,
@@ -42,12 +42,11 @@ import httpx
 from sqlalchemy import or_, select
 from tqdm import tqdm
 
-from bench.loop import _wait_ready, launch_service
+from bench.loop import launch_service, wait_ready
+from client.operator_bot import OperatorBot
 from server.auth import create_token
-from server.db import EpisodeRecord, FinetuneJob, PolicyVersion, SegmentRecord
-from server.operator_bot import OperatorBot
-from server.recording import FINISHED
-from server.scheduler import next_due, write_clock
+from server.db import FINISHED, EpisodeRecord, FinetuneJob, PolicyVersion, SegmentRecord
+from server.finetune.scheduler import next_due, write_clock
 from server.settings import Settings
 
 NIGHTS_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "nights.toml"
@@ -117,7 +116,7 @@ class Service:
         self.clock = FIRST_MORNING
 
     def wait_ready(self) -> None:
-        _wait_ready(self.url, self.proc, timeout=600)
+        wait_ready(self.url, self.proc, timeout=600)
 
     def robots(self) -> list[dict]:
         return self.api.get("/robots").raise_for_status().json()
@@ -384,7 +383,7 @@ def _config_name(path: Path) -> str:
 
 
 def _cause(reason: str | None) -> str:
-    """What made a robot ask, from its request's reason (``server.fleet_loop``): ``watchdog``, or the
+    """What made a robot ask, from its request's reason (``server.fleet.loop``): ``watchdog``, or the
     asking signal's name."""
     head = (reason or "").split(":", 1)[0].strip()
     return head or "unknown"

@@ -148,7 +148,7 @@ def task_resume(
     for budget in budgets:
         for at in steps:
             driver = AtStep(policy, AtStepConfig(at=at))
-            cfg = AssistConfig(mode="budgeted", budget=budget, n_envs=n_envs)
+            cfg = AssistConfig(hand_back="budgeted", budget=budget, n_envs=n_envs)
             eps, _ = run_assisted(policy, task, seeds, driver, config=cfg, progress=progress)
             won = np.array([e.success for e in eps])
             cells.append(

@@ -37,7 +37,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
             attempts = from_folder(args.demos, task=args.task)
         else:
             from server.export import ExportQuery, collect
-            from server.finetune_plan import parse_since
+            from server.finetune.plan import parse_since
 
             settings, sessions = open_store(args)
             since = args.start

@@ -172,12 +172,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     task = args.task or info.get("task")
     if args.rollouts and not task:
         raise ValueError(f"{args.policy}/config.json names no task: pass --task for the rollout check")
-    record = calibrate(policy, info, args.data, args.quantile, config, progress=not args.quiet)
+    cal = calibrate(policy, info, args.data, args.quantile, config, progress=not args.quiet)
+    record = cal.to_dict()
+    check = None
     if args.rollouts:
-        record["rollout_check"] = rollout_check(
+        check = record["rollout_check"] = rollout_check(
             policy,
             task,
-            record["threshold"],
+            cal.threshold,
             config,
             episodes=args.rollouts,
             seed=args.rollout_seed,
@@ -185,21 +187,20 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         )
     path = save_calibration(args.policy, record)
     out = {
-        "threshold": record["threshold"],
-        "quantile": record["quantile"],
-        "samples": record["samples"],
-        "episodes": len(record["episodes"]),
-        "validation_share_above": record["validation_share_above"],
+        "threshold": cal.threshold,
+        "quantile": cal.quantile,
+        "samples": cal.samples,
+        "episodes": len(cal.episodes),
+        "validation_share_above": cal.validation_share_above,
         "saved": str(path),
     }
-    check = record.get("rollout_check")
     if check:
         out["rollout_check"] = check
         if check["flagged"]:
             print(
                 f"hitl calibrate: calibration problem: {check['share_above']:.0%} of the steps of "
                 f"{check['episodes']} autonomous {check['task']} rollouts are above the threshold "
-                f"(validation: {record['validation_share_above']:.0%}; flagged above {check['flag_share']:.0%})",
+                f"(validation: {cal.validation_share_above:.0%}; flagged above {check['flag_share']:.0%})",
                 file=sys.stderr,
             )
     print(json.dumps(out))

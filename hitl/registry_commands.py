@@ -144,7 +144,8 @@ def _cmd_finetune(args: argparse.Namespace) -> int:
     import torch
 
     from server.errors import ServiceError
-    from server.finetune_job import FinetuneRunner, JobBusy, JobRequest, parse_since
+    from server.finetune.job import FinetuneRunner, JobBusy
+    from server.finetune.plan import JobRequest, parse_since
     from server.lease import LeaseLost
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

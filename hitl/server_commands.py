@@ -59,7 +59,7 @@ def _cmd_token(args: argparse.Namespace) -> int:
 
 
 def _cmd_operator_bot(args: argparse.Namespace) -> int:
-    from server.operator_bot import OperatorBot
+    from client.operator_bot import OperatorBot
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request is noise
@@ -358,7 +358,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--mode", choices=["budgeted", "continuous"], default="continuous", help="hand-back mode")
     q.add_argument("--config", type=Path, default=None, help="service config (default: configs/demo.toml)")
     q.add_argument("--data-dir", type=Path, default=None, help="where the run's database goes (default: a temp dir)")
-    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown_steps=20")
+    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown=20")
     q.add_argument("--no-bot", action="store_true", help="no operator: what the fleet does on its own")
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
@@ -375,7 +375,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         "--night-timeout", type=float, default=180.0, help="minutes a night's job may take before the run stops"
     )
     q.add_argument("--data-dir", type=Path, default=None, help="the run's service folder (default: a temp dir)")
-    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown_steps=20")
+    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown=20")
     q.add_argument("--quick", action="store_true", help="a tiny fleet and job, for CI (2 days, minutes)")
     q.add_argument("--out", type=Path, default=None, help="also write the JSON report here")
     q.add_argument("--figure", type=Path, default=None, help="write the effort-and-success figure here (PNG)")

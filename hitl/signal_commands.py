@@ -129,7 +129,7 @@ def _cmd_assist(args: argparse.Namespace) -> int:
     driver = signals.pop(args.driver)
     seeds = list(range(args.seed, args.seed + args.episodes))
     cfg = AssistConfig(
-        mode=args.mode,
+        hand_back=args.mode,
         budget=args.budget,
         cooldown=args.cooldown,
         watchdog=args.watchdog,

@@ -28,8 +28,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from policy.controller import HAND_BACK, Controller, ControllerConfig, RobotStep
+from policy.controller import Controller, ControllerConfig, RobotStep
 from policy.diffusion_policy import DiffusionPolicy
+from policy.hand_back import HAND_BACK
 from policy.lockstep import run_lockstep
 from policy.signals.base import AssistanceSignal
 from sim.env import Task
@@ -45,7 +46,7 @@ LIMITS = TeleopLimits()
 
 @dataclass(frozen=True)
 class AssistConfig:
-    mode: str = "budgeted"
+    hand_back: str = "budgeted"  # the controller's names (``policy.hand_back.HAND_BACK_FIELDS``)
     budget: int = 4  # operator steps per assistance event (budgeted mode)
     cooldown: int = 0  # policy steps after a hand-back on which the robot does not ask again
     watchdog: float | None = None  # ask once at this fraction of the horizon without success
@@ -59,15 +60,15 @@ class AssistConfig:
     operator_hands_back: bool = False
 
     def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.hand_back not in MODES:
+            raise ValueError(f"hand_back must be one of {MODES}, got {self.hand_back!r}")
         if not (isinstance(self.cooldown, int) and self.cooldown >= 0):
             raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
         for name in ("budget", "n_envs", "return_after"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1) and not (name == "return_after" and v is None):
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
-        if self.return_after is None and self.mode == "continuous" and not self.operator_hands_back:
+        if self.return_after is None and self.hand_back == "continuous" and not self.operator_hands_back:
             raise ValueError("continuous mode with return_after None needs operator_hands_back: nothing hands back")
 
 
@@ -163,9 +164,9 @@ def run_assisted(
         driver_name,
         make_task(task_name).action_space,
         ControllerConfig(
-            hand_back=cfg.mode,
+            hand_back=cfg.hand_back,
             budget=cfg.budget,
-            return_after=cfg.return_after if cfg.mode == "continuous" else None,
+            return_after=cfg.return_after if cfg.hand_back == "continuous" else None,
             cooldown=cfg.cooldown,
             watchdog=cfg.watchdog,
             seed=cfg.seed,

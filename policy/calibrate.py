@@ -17,6 +17,7 @@ like the states the policy visits, and the robots would flood the queue.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ import torch
 from tqdm import tqdm
 
 from policy.diffusion_policy import DiffusionPolicy
-from policy.heldout import HeldOutError, check_held_out
+from policy.heldout import HeldOutCheck, HeldOutError, check_held_out
 from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
 from sim.rotations import quat_to_rot6d
 from storage.dataset import DatasetConfig, DemoDataset, load_dataset
@@ -37,6 +38,42 @@ class CalibrationError(ValueError):
     pass
 
 
+@dataclass(frozen=True)
+class Calibration:
+    """The denoising threshold and its evidence (``to_dict``: the record of calibration.json).
+
+    threshold: the ``quantile`` of U over the ``samples`` steps of the validation ``episodes`` (names),
+    ``validation_share_above`` of them above it; episodes_checked: how they were found to be the held-out
+    ones; data: the folder (``storage.paths.portable``); uncertainty: the estimator's settings;
+    u_mean, u_median, u_max: U over those steps.
+    """
+
+    threshold: float
+    quantile: float
+    validation_share_above: float
+    samples: int
+    episodes: tuple[str, ...]
+    episodes_checked: HeldOutCheck
+    data: str
+    uncertainty: UncertaintyConfig
+    u_mean: float
+    u_median: float
+    u_max: float
+
+    def to_dict(self) -> dict:
+        return {
+            "threshold": self.threshold,
+            "quantile": self.quantile,
+            "validation_share_above": self.validation_share_above,
+            "samples": self.samples,
+            "episodes": list(self.episodes),
+            "episodes_checked": self.episodes_checked.to_dict(),
+            "data": self.data,
+            "uncertainty": self.uncertainty.to_dict(),
+            "u_stats": {"mean": self.u_mean, "median": self.u_median, "max": self.u_max},
+        }
+
+
 def current_actions(ds: DemoDataset, rows: np.ndarray, starts: np.ndarray) -> np.ndarray:
     """(M, 10) raw actions holding the recorded end-effector pose and gripper command at ``rows``."""
     pose = ds.ee_pose[rows]
@@ -44,19 +81,6 @@ def current_actions(ds: DemoDataset, rows: np.ndarray, starts: np.ndarray) -> np
     prev = np.where(rows > starts, rows - 1, rows)
     gripper = np.where(rows > starts, ds.actions[prev, 9], -1.0)
     return np.concatenate([pose[:, 0:3], rot, gripper[:, None]], axis=1).astype(np.float32)
-
-
-def validation_uncertainty(
-    policy: DiffusionPolicy,
-    data: str | Path,
-    val_episodes: list[str],
-    config: UncertaintyConfig,
-    batch: int = 64,
-    progress: bool = True,
-) -> tuple[np.ndarray, list[str]]:
-    """U at every step of the named validation episodes found in ``data`` -> (U (M,), episode names used)."""
-    ds, episodes = _validation_episodes(policy, data, val_episodes)
-    return _uncertainty(policy, ds, episodes, config, batch, progress)
 
 
 def _validation_episodes(
@@ -107,8 +131,8 @@ def calibrate(
     quantile: float = 0.95,
     config: UncertaintyConfig | None = None,
     progress: bool = True,
-) -> dict:
-    """Threshold record for calibration.json."""
+) -> Calibration:
+    """The threshold at ``quantile`` of U over the policy's held-out validation episodes in ``data``."""
     if not 0 < quantile < 1:
         raise ValueError(f"quantile must be in (0, 1), got {quantile!r}")
     config = config or UncertaintyConfig()
@@ -125,14 +149,16 @@ def calibrate(
         raise CalibrationError(str(exc)) from None
     u, used = _uncertainty(policy, ds, episodes, config, 64, progress)
     threshold = float(np.quantile(u, quantile))
-    return {
-        "threshold": threshold,
-        "quantile": quantile,
-        "validation_share_above": float(np.mean(u > threshold)),
-        "samples": int(len(u)),
-        "episodes": used,
-        "episodes_checked": held_out.to_dict(),
-        "data": portable(data),
-        "uncertainty": config.to_dict(),
-        "u_stats": {"mean": float(u.mean()), "median": float(np.median(u)), "max": float(u.max())},
-    }
+    return Calibration(
+        threshold=threshold,
+        quantile=quantile,
+        validation_share_above=float(np.mean(u > threshold)),
+        samples=int(len(u)),
+        episodes=tuple(used),
+        episodes_checked=held_out,
+        data=portable(data),
+        uncertainty=config,
+        u_mean=float(u.mean()),
+        u_median=float(np.median(u)),
+        u_max=float(u.max()),
+    )

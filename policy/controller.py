@@ -1,6 +1,6 @@
 """The one control step: every loop that moves robots calls ``Controller.step``.
 
-The fleet runtime (``server.fleet``), autonomous evaluation (``policy.evaluate``: ``hitl rollout``,
+The fleet (``server.fleet``), autonomous evaluation (``policy.evaluate``: ``hitl rollout``,
 ``hitl report sanity``) and assisted rollouts (``policy.assisted``: ``hitl assist`` and the
 benchmarks) are thin drivers around it, so what we evaluate and benchmark is what we serve.
 
@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from policy.diffusion_policy import DiffusionPolicy
+from policy.hand_back import HAND_BACK
 from policy.inference import Inference, InferenceRequest, InferenceUnavailable, LocalInference
 from policy.signals.base import AssistanceSignal, SignalError
 from policy.uncertainty import UncertaintyBatch, UncertaintyResult
@@ -56,7 +57,6 @@ from sim.frame import RobotFrame
 from sim.spaces import ACTION_DIM, ActionSpace, TeleopCommand, TeleopTarget
 from storage import keys
 
-HAND_BACK = ("budgeted", "continuous")
 WATCHDOG = "watchdog"  # RobotStep.asked_by when the robot asked because its episode ran long
 
 
@@ -101,11 +101,6 @@ class ControllerConfig:
         if self.watchdog is not None and not (isinstance(self.watchdog, int | float) and 0 < self.watchdog < 1):
             # at the whole horizon the episode is over before the robot could ask
             raise ValueError(f"watchdog must be None or a fraction of the horizon in (0, 1), got {self.watchdog!r}")
-
-    @property
-    def calm_steps(self) -> int | None:
-        """Consecutive no-help operator steps that return control (None: only the budget or the operator)."""
-        return self.return_after
 
 
 @dataclass
@@ -244,10 +239,6 @@ class Controller:
         """Operator steps left before a budgeted hand-back (None: not under teleop, or continuous mode)."""
         return self._robot(robot_id).teleop_left
 
-    def hold_here(self, robot_id: int, hold: np.ndarray) -> None:
-        """A robot waiting or under teleop holds ``hold`` (10,) until its next command."""
-        self._robot(robot_id).hold = np.asarray(hold, np.float64).copy()
-
     def _robot(self, robot_id: int) -> _Robot:
         try:
             return self._robots[robot_id]
@@ -363,13 +354,13 @@ class Controller:
         scores, wants = result.scores, result.wants
         asking = wants.get(asks) if asks is not None else None
         urgent = result.urgent if asking is not None else None
-        calm_steps = self.config.calm_steps
+        return_after = self.config.return_after
         field = next((sc.detail for sc in scores.values() if isinstance(sc.detail, UncertaintyBatch)), None)
         for j, (rid, r) in enumerate(zip(ids, robots, strict=True)):
             frame = frames[rid]
             if teleop[j]:
                 step = out[rid]
-                if asking is not None and calm_steps is not None:
+                if asking is not None and return_after is not None:
                     r.calm = r.calm + 1 if not asking[j] else 0
                 self._count_operator_step(rid, r, step)
             elif (
@@ -397,8 +388,8 @@ class Controller:
         run of ``return_after``, is used up."""
         if r.teleop_left is not None:
             r.teleop_left -= 1
-        calm_steps = self.config.calm_steps
-        done = (r.teleop_left is not None and r.teleop_left <= 0) or (calm_steps is not None and r.calm >= calm_steps)
+        calm_enough = self.config.return_after is not None and r.calm >= self.config.return_after
+        done = (r.teleop_left is not None and r.teleop_left <= 0) or calm_enough
         if done:
             self.release(rid)
             step.returned = True

@@ -33,7 +33,7 @@ def check_device(name: str) -> torch.device:
 
 def prepare_for_serving(policy: DiffusionPolicy, device: str = "cpu", trace: bool = True) -> DiffusionPolicy:
     """The policy ready to serve: on ``device`` (ValueError when this machine lacks it), in eval mode, its
-    noise network traced and frozen when ``trace`` (``server.slots.load_slot`` and the benchmarks)."""
+    noise network traced and frozen when ``trace`` (``server.fleet.slots.load_slot`` and the benchmarks)."""
     policy.to(check_device(device)).eval()
     if trace:
         policy.freeze_for_inference()

@@ -1,5 +1,5 @@
 """Fine-tuning a policy version on takeover data: the training, the recalibration, the evaluation and
-the promotion gate. No database here: ``server.finetune_job`` runs these steps as a job and records
+the promotion gate. No database here: ``server.finetune.job`` runs these steps as a job and records
 them in the registry.
 
 Training starts from the parent's weights and its action normalizer (its absolute action space).

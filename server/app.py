@@ -38,11 +38,11 @@ from server.api.schemas import ErrorOut, FieldError
 from server.auth import TokenCache
 from server.db import make_engine, session_factory
 from server.errors import ServiceError
+from server.finetune.scheduler import JobLauncher, ScheduleStatus
 from server.port import FleetPort
 from server.runtime.client import RemoteFleet
 from server.runtime.local import FleetRuntime
 from server.runtime.wire import RuntimeLink
-from server.scheduler import JobLauncher, ScheduleStatus
 from server.settings import Settings
 
 log = logging.getLogger("hitl.server")

@@ -143,6 +143,8 @@ class EpisodeRecord(Base):
     path: Mapped[str | None] = mapped_column(String(1024), nullable=True)
 
 
+FINISHED = ("success", "timeout")  # episode outcomes of episodes that ended on their own
+
 SEGMENT_ENDS = (
     "hand-back",
     "lease-expired",
@@ -173,7 +175,7 @@ class SegmentRecord(Base):
     started_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), nullable=True)
     # the operator's verdict (migration 0006): label one of SEGMENT_LABELS or None; a discarded takeover
-    # keeps its file and is never trained on (server.finetune_plan)
+    # keeps its file and is never trained on (server.finetune.plan)
     label: Mapped[str | None] = mapped_column(String(8), nullable=True)
     discarded: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     note: Mapped[str | None] = mapped_column(String(500), nullable=True)

@@ -1,7 +1,7 @@
 """The human effort a policy version needs: what the console's lineage view shows of each version, and
 of each day of the fleet it serves.
 
-Counted over episodes that ended on their own (success or timeout: ``server.recording.FINISHED``),
+Counted over episodes that ended on their own (success or timeout: ``server.fleet.recording.FINISHED``),
 grouped in the database (one ``GROUP BY`` per view, however many episodes): episodes, successes,
 autonomous successes (episodes that asked nothing), requests and assisted steps. A day is the
 database's calendar date of the episode's start (UTC).
@@ -15,8 +15,7 @@ from datetime import UTC, datetime, timedelta
 from sqlalchemy import and_, case, func, select
 from sqlalchemy.orm import Session
 
-from server.db import EpisodeRecord
-from server.recording import FINISHED
+from server.db import FINISHED, EpisodeRecord
 
 
 @dataclass(frozen=True)

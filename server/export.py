@@ -21,12 +21,12 @@ from tqdm import tqdm
 from server import registry
 from server.db import EpisodeRecord, PolicyVersion, SegmentRecord
 from server.errors import ServiceError
-from server.finetune_plan import USABLE
+from server.finetune.plan import USABLE
 from server.labels import label_of
-from server.recording import resolve
 from sim.registry import TASKS, make_task
 from storage.episodes import EpisodeReadError, read_episode
 from storage.lerobot.attempts import Attempt, from_episode, from_segment
+from storage.paths import in_store
 from storage.segments import SegmentReadError, read_segment
 
 
@@ -101,7 +101,7 @@ def collect(sessions: sessionmaker, data_dir: Path, query: ExportQuery, progress
                 out.skipped[name] = "its file was not recorded (record_episodes is off); no takeover in it"
             continue
         try:
-            recorded = read_episode(resolve(data_dir, ep.path))
+            recorded = read_episode(in_store(data_dir, ep.path))
         except (EpisodeReadError, OSError) as exc:
             out.skipped[name] = f"unreadable ({exc}); its takeovers are exported alone"
             continue
@@ -112,7 +112,7 @@ def collect(sessions: sessionmaker, data_dir: Path, query: ExportQuery, progress
         if seg.episode_id in whole:
             continue
         try:
-            recorded = read_segment(resolve(data_dir, seg.path))
+            recorded = read_segment(in_store(data_dir, seg.path))
         except (SegmentReadError, OSError) as exc:
             out.skipped[f"segment {seg.id}"] = f"unreadable ({exc})"
             continue

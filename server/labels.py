@@ -3,7 +3,7 @@
 A label lives on the takeover's row (``db.SegmentRecord``: migration 0006). Setting one changes only
 the fields given (a note can be added without touching the verdict) and records the operator and the
 time of the change. Discarding keeps the MCAP file (it can still be downloaded and exported) and takes
-the takeover out of every fine-tuning selection (``server.finetune_plan.select_segments``), which
+the takeover out of every fine-tuning selection (``server.finetune.plan.select_segments``), which
 records it as excluded, with the reason, in the job's manifest. A takeover still being recorded can be
 labelled too: the verdict usually comes right at the hand-back.
 """

@@ -18,8 +18,9 @@ from pathlib import Path
 from typing import Protocol
 
 from server import registry
-from server.assistance import AssistanceRequest
-from server.robot import RobotView
+from server.fleet.assistance import AssistanceRequest
+from server.fleet.metrics import MetricsReport
+from server.fleet.robot import RobotView
 from sim.spaces import TeleopCommand
 
 
@@ -51,11 +52,11 @@ class FleetPort(Protocol):
         """Open assistance requests, unclaimed first, by priority."""
         ...
 
-    def metrics(self) -> dict: ...
+    def metrics(self) -> MetricsReport: ...
 
     def lineages(self, max_age: float = 5.0) -> tuple[registry.LineageSummary, ...]: ...
 
-    # -- an operator's takeover (never waits for a tick: ``server.handovers``, ``server.commands``) -------
+    # -- an operator's takeover (never waits for a tick: ``server.fleet.handovers``, ``server.fleet.commands``) -------
     def claim(self, robot_id: int, operator: str) -> AssistanceRequest: ...
 
     def heartbeat(self, robot_id: int, operator: str) -> AssistanceRequest: ...

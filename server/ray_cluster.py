@@ -4,7 +4,8 @@ Ray is an optional extra (``pip install '.[ray]'``), imported only here and by t
 it, so a fleet on the embedded defaults never needs it. ``connect`` starts a local instance with the
 machine's CPUs and no dashboard, or joins the cluster at ``ray_address`` (``ray://`` or ``host:port``),
 once per process: the robot actors and the service share it. The settings' ``ray_namespace`` keeps
-one service's actors apart from another's on a shared cluster.
+one service's actors apart from another's on a shared cluster. ``connect`` reads only those two
+settings (``RayTarget``), so this module never imports ``server.settings``, which imports it.
 """
 
 from __future__ import annotations
@@ -13,13 +14,20 @@ import importlib.util
 import logging
 import os
 import threading
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from server.settings import Settings
+from typing import Protocol
 
 log = logging.getLogger("hitl.ray")
 _lock = threading.Lock()
+
+
+class RayTarget(Protocol):
+    """What ``connect`` reads of the service's settings (``server.settings.Settings`` has both)."""
+
+    @property
+    def ray_address(self) -> str | None: ...
+
+    @property
+    def ray_namespace(self) -> str: ...
 
 
 class RayUnavailable(RuntimeError):
@@ -40,7 +48,7 @@ def ray_module():
     return ray
 
 
-def connect(settings: Settings):
+def connect(settings: RayTarget):
     """The ``ray`` module, initialized for this service (a local instance, or the cluster at
     ``settings.ray_address``); already initialized: as it is."""
     ray = ray_module()

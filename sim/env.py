@@ -93,6 +93,14 @@ class StepResult:
     clock: int
 
 
+@dataclass(frozen=True)
+class TaskGoal:
+    """A task's goal as a human operator knows it (what the robot's camera may not show): ``text``,
+    one markdown line for the console."""
+
+    text: str
+
+
 def _make_scene_env(task: Task, horizon: int):
     """Builds the robosuite env for ``task``; imported lazily (robosuite is slow to import)."""
     _quiet_robosuite()
@@ -191,6 +199,11 @@ class Task(ABC):
     @abstractmethod
     def privileged(self) -> dict:
         """Ground truth the scripted expert may use (true poses, hidden goals)."""
+
+    def goal(self, scene: dict) -> TaskGoal:
+        """The goal for the operator, from ``scene``: what ``privileged`` gave (as a ``RobotFrame``'s
+        ``goal``, plain JSON values), so it needs no simulation. By default the task's description."""
+        return TaskGoal(self.description)
 
     def on_step(self) -> None:  # noqa: B027 - optional hook
         """Called after each control step, before observing."""

@@ -15,13 +15,19 @@ space: on a 0.45 m workspace axis it is 2.25 cm of end-effector motion
 
 ``TeleopCommand`` is the only way an operator (human or scripted) moves a robot:
 a delta pose and a gripper command, turned into an absolute action from the
-robot's current pose by ``ActionSpace.apply_teleop``.
+robot's current pose by ``ActionSpace.apply_teleop``. It validates itself on construction and is the
+one owner of an operator's command bounds and of its wire form (``to_dict``/``from_dict``): the API's body
+model, the console, the operator bot and the recorder go through it.
 """
 
 from __future__ import annotations
 
+import json
 import math
+import numbers
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -51,48 +57,144 @@ class TeleopLimits:
 
 @dataclass(frozen=True)
 class TeleopCommand:
-    """Delta end-effector pose plus gripper command.
+    """Delta end-effector pose plus gripper command: the one teleop command type, its validation and
+    its wire form.
 
     Attributes:
         delta_pos: (3,) translation in metres, world frame.
         delta_rot: (3,) rotation vector in radians, world frame (pre-multiplied).
-        gripper: -1 open .. +1 closed; values outside are clamped.
+        gripper: -1 open .. +1 closed (``clamped`` brings a value outside into that range).
 
-    Non-finite values are rejected here with ``ValueError``; magnitudes are
-    clamped later against ``TeleopLimits`` so that a command is never lost.
+    Construction checks the form, for every command: 3 finite real numbers each for ``delta_pos`` and
+    ``delta_rot``, a finite real number for ``gripper`` (``True``/``False`` refused), stored as Python
+    floats; a ``ValueError`` names the field. It does not check sizes: the service composes the commands
+    that arrive between two ticks and the scripted experts aim at far targets, and those are clamped to
+    ``TeleopLimits`` when applied (``clamped``), so that a command is never lost.
+
+    An operator's command is bounded per component (``MAX_DELTA_POS``, ``MAX_DELTA_ROT``,
+    ``GRIPPER_RANGE``; the API's body schema states the same bounds from these constants): ``checked``,
+    ``check_bounds`` and ``from_dict``/``from_json`` refuse one outside them. ``to_dict``/``to_json`` give
+    its wire form (the body of ``POST /api/v1/robots/{id}/command``), which ``from_dict``/``from_json`` read
+    back exactly.
     """
 
     delta_pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
     delta_rot: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gripper: float = -1.0
 
+    # what an operator may send, per component (the robot clamps further, per step: ``TeleopLimits``)
+    MAX_DELTA_POS: ClassVar[float] = 0.1  # m per command and component
+    MAX_DELTA_ROT: ClassVar[float] = 0.5  # rad per command and component
+    GRIPPER_RANGE: ClassVar[tuple[float, float]] = (-1.0, 1.0)  # open .. closed
+    FIELDS: ClassVar[tuple[str, str, str]] = ("delta_pos", "delta_rot", "gripper")
+
     def __post_init__(self) -> None:
-        for name in ("delta_pos", "delta_rot"):
-            raw = getattr(self, name)
-            try:
-                values = tuple(float(v) for v in raw)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"TeleopCommand.{name} must be 3 numbers, got {raw!r}") from exc
-            if len(values) != 3:
-                raise ValueError(f"TeleopCommand.{name} must have 3 components, got {len(values)}: {raw!r}")
-            if not all(math.isfinite(v) for v in values):
-                raise ValueError(f"TeleopCommand.{name} must be finite, got {values!r}")
-            object.__setattr__(self, name, values)
+        object.__setattr__(self, "delta_pos", _vector3("delta_pos", self.delta_pos))
+        object.__setattr__(self, "delta_rot", _vector3("delta_rot", self.delta_rot))
+        object.__setattr__(self, "gripper", _finite("gripper", self.gripper))
+
+    # -- bounds -------------------------------------------------------------------------------------------
+    @classmethod
+    def checked(
+        cls,
+        delta_pos: Sequence[float] = (0.0, 0.0, 0.0),
+        delta_rot: Sequence[float] = (0.0, 0.0, 0.0),
+        gripper: float = -1.0,
+    ) -> TeleopCommand:
+        """An operator's command: constructed, then ``check_bounds``."""
+        return cls(delta_pos, delta_rot, gripper).check_bounds()
+
+    def check_bounds(self) -> TeleopCommand:
+        """``self`` when every component is within the bounds an operator may send, else a ``ValueError``
+        naming the field."""
+        for name, bound in (("delta_pos", self.MAX_DELTA_POS), ("delta_rot", self.MAX_DELTA_ROT)):
+            values = getattr(self, name)
+            if not all(-bound <= v <= bound for v in values):
+                raise ValueError(f"TeleopCommand.{name}: each component must be within ±{bound}, got {values!r}")
+        lo, hi = self.GRIPPER_RANGE
+        if not lo <= self.gripper <= hi:
+            raise ValueError(f"TeleopCommand.gripper must be within [{lo}, {hi}], got {self.gripper!r}")
+        return self
+
+    # -- wire form ----------------------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, list[float] | float]:
+        """``{"delta_pos": [x, y, z], "delta_rot": [x, y, z], "gripper": g}``, Python floats (JSON-ready)."""
+        return {"delta_pos": list(self.delta_pos), "delta_rot": list(self.delta_rot), "gripper": self.gripper}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), allow_nan=False)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], *, bounded: bool = True) -> TeleopCommand:
+        """The command in ``data``, a wire form as the API's body takes it: ``delta_pos`` and ``gripper``
+        required, ``delta_rot`` defaulting to no rotation, no other key. ``bounded``: refuse values outside
+        the operator's bounds (``check_bounds``); False reads back any valid command (a composed one)."""
+        if not isinstance(data, Mapping):
+            raise ValueError(f"TeleopCommand must be a JSON object, got {type(data).__name__}")
+        unknown = sorted(str(k) for k in data if k not in cls.FIELDS)
+        if unknown:
+            raise ValueError(f"TeleopCommand has unknown fields {unknown}; it takes {list(cls.FIELDS)}")
+        for name in ("delta_pos", "gripper"):
+            if name not in data:
+                raise ValueError(f"TeleopCommand.{name} is missing")
+        command = cls(data["delta_pos"], data.get("delta_rot", (0.0, 0.0, 0.0)), data["gripper"])
+        return command.check_bounds() if bounded else command
+
+    @classmethod
+    def from_json(cls, text: str | bytes, *, bounded: bool = True) -> TeleopCommand:
         try:
-            grip = float(self.gripper)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"TeleopCommand.gripper must be a number, got {self.gripper!r}") from exc
-        if not math.isfinite(grip):
-            raise ValueError(f"TeleopCommand.gripper must be finite, got {grip!r}")
-        object.__setattr__(self, "gripper", grip)
+            data = json.loads(text)
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+            raise ValueError(f"TeleopCommand: not valid JSON ({exc})") from None
+        return cls.from_dict(data, bounded=bounded)
 
     def clamped(self, limits: TeleopLimits) -> TeleopCommand:
         """The same direction, scaled down to the safe step sizes."""
         return TeleopCommand(
             delta_pos=tuple(_clip_norm(np.array(self.delta_pos), limits.max_delta_pos)),
             delta_rot=tuple(_clip_norm(np.array(self.delta_rot), limits.max_delta_rot)),
-            gripper=float(np.clip(self.gripper, -1.0, 1.0)),
+            gripper=float(np.clip(self.gripper, *self.GRIPPER_RANGE)),
         )
+
+
+def _real(name: str, v: object) -> float:
+    """``v`` as a float, if it is a real number (not a bool); else a ``ValueError`` naming the field."""
+    if type(v) is float:  # the common cases, first
+        return v
+    if isinstance(v, float):  # numpy's float64
+        return float(v)
+    if isinstance(v, bool | np.bool_) or not isinstance(v, numbers.Real):
+        raise ValueError(f"TeleopCommand.{name} must be a number, got {v!r}")
+    try:
+        return float(v)
+    except OverflowError:  # an int past a float's range
+        raise ValueError(f"TeleopCommand.{name} must be finite, got {v!r}") from None
+
+
+def _finite(name: str, v: object) -> float:
+    value = _real(name, v)
+    if value - value != 0.0:  # NaN or an infinity (math.isfinite, without the call)
+        raise ValueError(f"TeleopCommand.{name} must be finite, got {value!r}")
+    return value
+
+
+def _vector3(name: str, raw: object) -> tuple[float, float, float]:
+    if type(raw) is not tuple and type(raw) is not list and isinstance(raw, str | bytes | Mapping):
+        raise ValueError(f"TeleopCommand.{name} must be 3 numbers, got {raw!r}")
+    try:
+        items = tuple(raw)
+    except TypeError:
+        raise ValueError(f"TeleopCommand.{name} must be 3 numbers, got {raw!r}") from None
+    if len(items) != 3:
+        raise ValueError(f"TeleopCommand.{name} must have 3 components, got {len(items)}: {raw!r}")
+    x, y, z = items
+    try:
+        values = (_real(name, x), _real(name, y), _real(name, z))
+    except ValueError:
+        raise ValueError(f"TeleopCommand.{name} must be 3 numbers, got {raw!r}") from None
+    if (values[0] - values[0]) + (values[1] - values[1]) + (values[2] - values[2]) != 0.0:  # NaN or infinity
+        raise ValueError(f"TeleopCommand.{name} must be finite, got {values!r}")
+    return values
 
 
 @dataclass(frozen=True)
@@ -142,11 +244,6 @@ class ActionSpace:
         """(..., 10) actions -> (..., 10) in [0, 1] over the bounds."""
         lo, hi = self.low, self.high
         return (np.asarray(action, dtype=np.float64) - lo) / (hi - lo)
-
-    def denormalize(self, unit: np.ndarray) -> np.ndarray:
-        """(..., 10) values in [0, 1] -> (..., 10) actions."""
-        lo, hi = self.low, self.high
-        return np.asarray(unit, dtype=np.float64) * (hi - lo) + lo
 
     def radius_in_units(self, r: float) -> dict[str, object]:
         """What a radius r in the normalised space spans in each dimension's own units: position in

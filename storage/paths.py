@@ -40,3 +40,14 @@ def resolve(recorded: str | Path) -> Path:
     """A recorded path as one to open: absolute paths as they are, relative ones under the data root."""
     p = Path(recorded).expanduser()
     return p if p.is_absolute() else data_root() / p
+
+
+def in_store(data_dir: str | Path, stored: str | Path) -> Path:
+    """A file path as the service's metadata store records it (relative to the service's ``data_dir``,
+    not to the data root above), as one to open; absolute paths, as older versions stored them, as they are."""
+    return Path(data_dir).resolve() / stored
+
+
+def store_relative(data_dir: str | Path, path: str | Path) -> str:
+    """``path``, a file under the service's ``data_dir``, as the metadata store records it (``in_store``)."""
+    return str(Path(path).relative_to(Path(data_dir).resolve()))

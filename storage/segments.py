@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -190,28 +191,74 @@ def recover_segment(path: str | Path) -> int:
         raise
     except Exception as exc:  # noqa: BLE001
         raise SegmentReadError(path, f"unreadable ({type(exc).__name__}: {exc})") from exc
+    steps = len(seg.step_messages)  # counted, not read: recovery keeps whatever the file holds
     if seg.end is not None and not seg.recovered:
-        return len(seg.steps)  # already complete
+        return steps  # already complete
     # a file that lost only its footer already has its end message: it is indexed, not given a second one
-    end = None if seg.end is not None else end_message("recovered", "crash-recovered", len(seg.steps))
+    end = None if seg.end is not None else end_message("recovered", "crash-recovered", steps)
     rebuild(path, {keys.TOPIC_TAKEOVER_END: end} if end is not None else None)
-    return len(seg.steps)
+    return steps
+
+
+@dataclass(frozen=True)
+class SegmentStep:
+    """One ``/takeover/step`` as read: t (its index in the takeover), observation (obs_dim,), the
+    operator's command (delta_pos, delta_rot, gripper), the absolute action (10,) it produced and the
+    same in the serving policy's normalized action space, U (None: not scored), the shadow signals'
+    scores, the end effector's position (3,) and quaternion (4, x y z w) before the action. Values are
+    as the file holds them (JSON lists); a reader checks their shapes."""
+
+    observation: list[float]
+    action: list[float]
+    position: list[float]
+    quaternion: list[float]
+    t: int | None = None
+    command: dict | None = None
+    action_normalized: list[float] | None = None
+    uncertainty: float | None = None
+    shadow: dict[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def from_message(cls, doc: dict) -> SegmentStep:
+        """Raises KeyError or TypeError for a message without the fields every step has."""
+        return cls(
+            observation=doc[keys.STEP_OBSERVATION],
+            action=doc[keys.STEP_ACTION],
+            position=doc["position"],
+            quaternion=doc["quaternion"],
+            t=doc.get(keys.STEP_T),
+            command=doc.get("command"),
+            action_normalized=doc.get("action_normalized"),
+            uncertainty=doc.get("uncertainty"),
+            shadow=doc.get("shadow") or {},
+        )
 
 
 @dataclass
 class Segment:
+    """A read segment: ``meta`` (/takeover), ``steps`` (/takeover/step, typed when first read: a step
+    without the fields every step has raises SegmentReadError then), ``end`` (/takeover/end, None while
+    open), ``recovered`` (salvaged from a file left open), ``fields`` (a foxglove.SceneUpdate per step)."""
+
     path: Path
     meta: dict
-    steps: list[dict] = field(default_factory=list)
     end: dict | None = None
     recovered: bool = False
-    fields: list[dict] = field(default_factory=list)  # foxglove.SceneUpdate per step
+    fields: list[dict] = field(default_factory=list)
+    step_messages: list[dict] = field(default_factory=list, repr=False)  # the /takeover/step payloads
+
+    @cached_property
+    def steps(self) -> tuple[SegmentStep, ...]:
+        try:
+            return tuple(SegmentStep.from_message(doc) for doc in self.step_messages)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SegmentReadError(self.path, f"malformed step ({type(exc).__name__}: {exc})") from exc
 
     def labels(self) -> tuple[np.ndarray, np.ndarray]:
         """(obs (T, obs_dim), normalized action labels (T, 10)) for fine-tuning."""
         return (
-            np.array([s.get(keys.STEP_OBSERVATION, s.get("obs")) for s in self.steps], dtype=np.float32),
-            np.array([s["action_normalized"] for s in self.steps], dtype=np.float32),
+            np.array([s.observation for s in self.steps], dtype=np.float32),
+            np.array([s.action_normalized for s in self.steps], dtype=np.float32),
         )
 
 
@@ -222,7 +269,7 @@ def _collect(path: Path, messages, recovered: bool) -> Segment:
         if channel.topic == keys.TOPIC_TAKEOVER:
             seg.meta = doc
         elif channel.topic == keys.TOPIC_TAKEOVER_STEP:
-            seg.steps.append(doc)
+            seg.step_messages.append(doc)
         elif channel.topic == keys.TOPIC_TAKEOVER_END:
             seg.end = doc
         elif channel.topic == keys.TOPIC_FIELD:

@@ -100,12 +100,13 @@ def _steps(path: Path, obs_dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
     seg = read_segment(path)  # closed and recovered segments are complete files
     if seg.end is None:
         raise SegmentReadError(path, "no /takeover/end message: the segment is still open")
-    if not seg.steps:
+    steps = seg.steps  # a step without the fields every step has: SegmentReadError (malformed step)
+    if not steps:
         raise SegmentReadError(path, "no steps")
     try:
-        obs = np.array([s[keys.STEP_OBSERVATION] for s in seg.steps], dtype=np.float32)
-        act = np.array([s[keys.STEP_ACTION] for s in seg.steps], dtype=np.float32)
-        pose = np.array([list(s["position"]) + list(s["quaternion"]) for s in seg.steps], dtype=np.float32)
+        obs = np.array([s.observation for s in steps], dtype=np.float32)
+        act = np.array([s.action for s in steps], dtype=np.float32)
+        pose = np.array([list(s.position) + list(s.quaternion) for s in steps], dtype=np.float32)
     except (KeyError, TypeError, ValueError) as exc:
         raise SegmentReadError(path, f"malformed step ({type(exc).__name__}: {exc})") from exc
     if obs.ndim != 2 or obs.shape[1] != obs_dim:

@@ -1,23 +1,22 @@
 """What a console user may do, through the fleet's own service methods with the API's checks.
 
 Every console input comes here: the same role rule as the REST dependencies (claiming, commanding and
-handing back need the operator role), the same body model as ``POST /robots/{id}/command``
-(``TeleopCommandIn``: finite values, per-step limits, gripper range), then the same ``Fleet`` method the
-route calls (lease check, composition limits, 429). Refusals are ``ServiceError`` with the status the
-API would answer; the console shows their message.
+handing back need the operator role), the same command checks as ``POST /robots/{id}/command``
+(``TeleopCommand.checked``: finite values, per-component bounds, gripper range; the API's body model states
+the same bounds), then the same ``Fleet`` method the route calls (lease check, composition limits, 429).
+Refusals are ``ServiceError`` with the status the API would answer; the console shows their message.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-from pydantic import ValidationError
 from sqlalchemy.orm import sessionmaker
 
-from server.api.schemas import TeleopCommandIn
 from server.errors import ServiceError
 from server.labels import LabelChange, set_label
 from server.port import FleetPort
+from sim.spaces import TeleopCommand
 from web.identity import Identity
 
 
@@ -51,12 +50,10 @@ class ConsoleActions:
         """One teleop command; returns how many commands the next tick applies."""
         self._need_operator("commanding a robot")
         try:
-            body = TeleopCommandIn(
-                delta_pos=[float(v) for v in delta_pos], delta_rot=[float(v) for v in delta_rot], gripper=gripper
-            )
-        except ValidationError as exc:
-            raise ServiceError(422, "; ".join(e["msg"] for e in exc.errors())) from exc
-        return self.fleet.command(robot_id, self.identity.name, body.to_command())
+            command = TeleopCommand.checked(delta_pos, delta_rot, gripper)
+        except ValueError as exc:
+            raise ServiceError(422, str(exc)) from exc
+        return self.fleet.command(robot_id, self.identity.name, command)
 
     def label(self, segment_id: int, change: LabelChange) -> None:
         """Labels a takeover (as ``PATCH /segments/{id}``: the operator role, the same checks)."""

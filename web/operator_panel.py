@@ -18,7 +18,9 @@ import numpy as np
 import viser
 
 from server.errors import ServiceError
+from server.fleet.modes import FleetMode
 from server.port import FleetPort
+from sim.env import Task
 from sim.registry import make_task
 from sim.spaces import TeleopLimits
 from web.actions import ConsoleActions
@@ -89,7 +91,7 @@ class OperatorPanel:
         self._drag: tuple[np.ndarray, np.ndarray] | None = None
         self._dragging = False
         self._timeline_key: tuple = ()
-        self._descriptions: dict[str, str] = {}
+        self._tasks: dict[str, Task] = {}  # task name -> the task, for its goal
         self._build_gui()
         client.camera.position, client.camera.look_at = CAMERA_POSITION, CAMERA_LOOK_AT
 
@@ -293,7 +295,7 @@ class OperatorPanel:
             held_now = {rid for rid, r in requests.items() if r.holder == me}
             for rid in sorted(self._held - held_now - self._released):
                 view = snap.robots.get(rid)
-                if rid in requests or (view is not None and view.mode == "waiting"):
+                if rid in requests or (view is not None and view.mode == FleetMode.WAITING):
                     self._notify(
                         f"Lease lost on robot {rid}",
                         "Your lease ran out; the robot holds and waits in the queue.",
@@ -302,7 +304,7 @@ class OperatorPanel:
             # held robots come from snapshots only (a claim after this tick's snapshot shows up at the next);
             # a hand-back is remembered until the snapshots stop showing the robot as held
             self._held, self._released = held_now, self._released & held_now
-        faulted = {rid for rid, v in snap.robots.items() if v.mode == "faulted"}
+        faulted = {rid for rid, v in snap.robots.items() if v.mode == FleetMode.FAULTED}
         for rid in sorted(faulted - self._faulted):
             self._notify(f"Robot {rid} faulted", snap.robots[rid].fault or "its worker stopped", "red")
         self._faulted = faulted
@@ -352,14 +354,11 @@ class OperatorPanel:
         rid = self.robot_id
         view = snap.robots[rid]
         req = snap.request(rid)
-        holding = req is not None and req.holder == self.identity.name and view.mode == "teleop"
-        if view.task not in self._descriptions:
-            self._descriptions[view.task] = make_task(view.task).description
-        self._set(
-            self.status,
-            "content",
-            robot_markdown(view, req, snap.now, self.identity.name, self._descriptions[view.task]),
-        )
+        holding = req is not None and req.holder == self.identity.name and view.mode == FleetMode.TELEOP
+        if view.task not in self._tasks:
+            self._tasks[view.task] = make_task(view.task)  # no simulation: it builds one only when stepped
+        task = self._tasks[view.task]
+        self._set(self.status, "content", robot_markdown(view, req, snap.now, self.identity.name, task))
         can_claim = (
             self.actions.can_operate and req is not None and not holding and (req.holder in (None, self.identity.name))
         )

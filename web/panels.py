@@ -14,18 +14,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from policy.signals.base import SignalError
-from server.assistance import AssistanceRequest
+from server.fleet.assistance import AssistanceRequest
+from server.fleet.modes import FleetMode
+from server.fleet.robot import RobotView
 from server.registry import LineageSummary
-from server.robot import RobotView
-from sim.tasks.open_drawer import DRAWER_NAMES
+from sim.env import Task
 
 MODE_BADGES = {  # plain glyphs only: the console's font has no emoji
-    "autonomous": "autonomous",
-    "waiting": "**⚠ waiting**",
-    "teleop": "**teleop**",
-    "paused": "paused",
-    "done": "episode done",
-    "faulted": "**⚠ faulted**",
+    FleetMode.AUTONOMOUS: "autonomous",
+    FleetMode.WAITING: "**⚠ waiting**",
+    FleetMode.TELEOP: "**teleop**",
+    FleetMode.PAUSED: "paused",
+    FleetMode.DONE: "episode done",
+    FleetMode.FAULTED: "**⚠ faulted**",
 }
 KEY_MAP = (
     ("I / K", "+x / −x (away from / towards the robot base)"),
@@ -164,20 +165,9 @@ def queue_row(req: AssistanceRequest, view: RobotView | None, now: float, me: st
     return f"**Robot {req.robot_id}** · {task} · waiting {now - req.created:.0f} s{held}  \n{req.reason}"
 
 
-def goal_text(description: str, goal: dict) -> str:
-    """The task's goal as the operator knows it (what the robot's camera may not show)."""
-    if "intended" in goal and isinstance(goal["intended"], int) and 0 <= goal["intended"] < len(DRAWER_NAMES):
-        return f"Open the **{DRAWER_NAMES[goal['intended']]}** drawer (the robot does not know which)."
-    if "red_visible" in goal:
-        seen = "" if goal["red_visible"] else " The red cup is hidden from the robot's camera."
-        return f"{description}.{seen}"
-    if "grasp_yaw" in goal:
-        return f"{description}; grasp across its bar (yaw {math.degrees(float(goal['grasp_yaw'])):.0f}°)."
-    return description
-
-
-def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, me: str, description: str) -> str:
-    """Mode and lease, which signal asked and why, n, D, Var_g and U against the threshold, the goal."""
+def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, me: str, task: Task) -> str:
+    """Mode and lease, which signal asked and why, n, D, Var_g and U against the threshold, the goal
+    (``task.goal`` of the frame's scene: the task the robot runs, as ``make_task`` builds it)."""
     frame = view.frame
     name, threshold = asking_threshold(view)
     score = view.scores.get(name)
@@ -189,7 +179,7 @@ def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, m
             left = max(0.0, (req.lease_until or now) - now)
             lease = f" · held by **{'you' if req.holder == me else plain(req.holder)}** (lease {left:.0f} s)"
         lines.append(f"**Asked:** {req.reason}{lease}")
-    if view.mode == "teleop" and view.teleop_left is not None:
+    if view.mode == FleetMode.TELEOP and view.teleop_left is not None:
         lines.append(f"**Budget:** {view.teleop_left} operator step{'s' if view.teleop_left != 1 else ''} left")
     if view.fault:
         lines.append(f"**Fault:** {view.fault}")
@@ -208,7 +198,7 @@ def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, m
     if r is None:
         lines.append("_No denoising field: add `denoising` to the service's `shadow_signals` to see it._")
     if frame is not None:
-        lines.append(f"**Goal:** {goal_text(description, frame.goal)}")
+        lines.append(f"**Goal:** {task.goal(frame.goal).text}")
         lines.append(
             f"Episode step {frame.clock} of {frame.horizon} (seed {view.seed}) · "
             f"gripper {frame.gripper * 1000:.0f} mm open"

@@ -322,7 +322,7 @@ def collect(
                 signal = load_signal(policy, policy_dir, source.split(":", 1)[1])
                 by_operator = cfg.hand_back == "operator"
                 assist = AssistConfig(
-                    mode="continuous" if by_operator else cfg.hand_back,
+                    hand_back="continuous" if by_operator else cfg.hand_back,
                     budget=cfg.budget,
                     cooldown=cfg.cooldown,
                     return_after=None if by_operator else cfg.return_after,

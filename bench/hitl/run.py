@@ -224,7 +224,7 @@ def run_cell(cell: Cell, threads: int | None = 1) -> dict:
     if threads:
         torch.set_num_threads(threads)
     policy, _ = load_policy(cell.policy)
-    cfg = AssistConfig(mode="budgeted", budget=cell.budget, n_envs=cell.envs)
+    cfg = AssistConfig(hand_back="budgeted", budget=cell.budget, n_envs=cell.envs)
     seeds = list(cell.seeds)
     if cell.kind == "shadow":
         signals, skipped = {}, {}

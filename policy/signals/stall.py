@@ -43,7 +43,7 @@ it cannot lift, then stands still, closed, to the end of the episode (lift-hook,
 more than n scored steps in a row.
 
 Both are off by default, as every ``stall`` result recorded before them was. ``reask_undo``'s requests
-are ``urgent``: a fleet's cooldown after a hand-back (``cooldown_steps``) does not hold them back, since
+are ``urgent``: a fleet's cooldown after a hand-back (``cooldown``) does not hold them back, since
 the policy step it would let run is the one that undoes the takeover.
 """
 

@@ -14,8 +14,9 @@ from server.api.responses import AUTH, BODY, errors
 from server.api.schemas import FinetuneJobIn, FinetuneJobOut, FinetuneScheduleOut, Id, PolicyName
 from server.db import FinetuneJob
 from server.errors import ServiceError
-from server.finetune_job import FinetuneRunner, JobRequest, parse_since
-from server.scheduler import JobLauncher
+from server.finetune.job import FinetuneRunner
+from server.finetune.plan import JobRequest, parse_since
+from server.finetune.scheduler import JobLauncher
 
 router = APIRouter(tags=["fine-tuning"])
 
@@ -48,7 +49,7 @@ def jobs(
 @router.get("/finetune-schedule", response_model=FinetuneScheduleOut, responses=errors(AUTH))
 def schedule(request: Request, _: Viewer) -> FinetuneScheduleOut:
     """When the nightly job runs next, and whether one started by this service is running."""
-    status = request.app.state.schedule_status()  # server.scheduler.ScheduleStatus
+    status = request.app.state.schedule_status()  # server.finetune.scheduler.ScheduleStatus
     return FinetuneScheduleOut(**dataclasses.asdict(status))
 
 

@@ -11,7 +11,7 @@ from server.api.responses import AUTH, BODY, errors
 from server.api.schemas import EpisodeOut, Id, SegmentLabelIn, SegmentOut
 from server.db import EpisodeRecord, SegmentRecord
 from server.labels import LabelChange, set_label
-from server.recording import resolve
+from storage.paths import in_store
 
 router = APIRouter(tags=["records"])
 
@@ -77,7 +77,7 @@ def download_segment(segment_id: Id, sessions: SessionsDep, fleet: FleetDep, _: 
         raise HTTPException(404, f"no segment {segment_id}")
     if row.status == "open":
         raise HTTPException(409, f"segment {segment_id} is still being recorded")
-    path = resolve(fleet.data_dir, row.path)
+    path = in_store(fleet.data_dir, row.path)
     if not path.is_file():
         raise HTTPException(410, f"segment {segment_id}'s file is gone")
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)

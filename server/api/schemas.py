@@ -9,11 +9,14 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, ValidationInfo, field_validator
 
 from server.db import NOTE_MAX
+from server.fleet.modes import FleetMode
 from sim.registry import TASKS
 from sim.spaces import TeleopCommand
 
-MAX_DELTA_POS = 0.1  # m per command and component; larger is rejected (the robot clamps to 3 cm per step anyway)
-MAX_DELTA_ROT = 0.5  # rad per command and component
+# TeleopCommand owns an operator's command bounds (per component; the robot clamps to 3 cm per step anyway)
+MAX_DELTA_POS = TeleopCommand.MAX_DELTA_POS  # m per command and component; larger is rejected
+MAX_DELTA_ROT = TeleopCommand.MAX_DELTA_ROT  # rad per command and component
+GRIPPER_MIN, GRIPPER_MAX = TeleopCommand.GRIPPER_RANGE
 # Id columns are INTEGER: 64-bit in SQLite but 32-bit in PostgreSQL; the API takes what both can store.
 ID_MAX = 2**31 - 1
 
@@ -22,7 +25,7 @@ ID_MAX = 2**31 - 1
 Id = Annotated[int, Field(ge=0, le=ID_MAX)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Quaternion = Annotated[list[float], Field(min_length=4, max_length=4, description="x, y, z, w")]
-RobotMode = Literal["autonomous", "waiting", "teleop", "paused", "done", "faulted"]
+RobotMode = Literal[tuple(m.value for m in FleetMode)]  # the same enum in the schema as a plain string
 
 
 class FieldError(BaseModel):
@@ -67,6 +70,9 @@ DeltaPos = Annotated[float, Field(ge=-MAX_DELTA_POS, le=MAX_DELTA_POS), BeforeVa
 DeltaRot = Annotated[float, Field(ge=-MAX_DELTA_ROT, le=MAX_DELTA_ROT), BeforeValidator(_not_a_bool)]
 
 
+# The wire form of ``sim.spaces.TeleopCommand`` (its ``to_dict``), with its bounds stated per component in
+# the schema; ``to_command`` converts it through ``TeleopCommand.from_dict``. (The class docstring is the
+# schema's description.)
 class TeleopCommandIn(BaseModel):
     """A delta end-effector pose (world frame) and a gripper command (-1 open .. +1 closed)."""
 
@@ -80,7 +86,7 @@ class TeleopCommandIn(BaseModel):
         max_length=3,
         description=f"rotation vector, rad, each component within ±{MAX_DELTA_ROT}",
     )
-    gripper: Real = Field(..., ge=-1.0, le=1.0)
+    gripper: Real = Field(..., ge=GRIPPER_MIN, le=GRIPPER_MAX)
 
     @field_validator("delta_pos", "delta_rot", mode="before")
     @classmethod
@@ -101,7 +107,8 @@ class TeleopCommandIn(BaseModel):
         return v
 
     def to_command(self) -> TeleopCommand:
-        return TeleopCommand(tuple(self.delta_pos), tuple(self.delta_rot), self.gripper)
+        """The domain command (``TeleopCommand.from_dict``: the same checks, from the same bounds)."""
+        return TeleopCommand.from_dict(self.model_dump())
 
 
 class CommandAccepted(BaseModel):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, generate_latest
 
@@ -29,7 +31,7 @@ def readyz(request: Request, response: Response) -> dict:
 
 @api.get("/metrics/fleet", response_model=FleetMetrics, responses=errors(AUTH))
 def fleet_metrics(fleet: FleetDep, _: Viewer) -> dict:
-    return fleet.metrics()
+    return asdict(fleet.metrics())
 
 
 @router.get(
@@ -49,16 +51,16 @@ def prometheus(fleet: FleetDep, _: Viewer) -> Response:
     """Fleet gauges in the Prometheus text format (``Content-Type: text/plain; version=...``)."""
     registry = CollectorRegistry()
     m = fleet.metrics()
-    Gauge("hitl_episodes_total", "finished episodes", registry=registry).set(m["episodes"])
-    Gauge("hitl_success_rate", "successful episodes / episodes", registry=registry).set(m["success_rate"] or 0)
-    Gauge("hitl_control_ticks_total", "control ticks", registry=registry).set(m["ticks"])
+    Gauge("hitl_episodes_total", "finished episodes", registry=registry).set(m.episodes)
+    Gauge("hitl_success_rate", "successful episodes / episodes", registry=registry).set(m.success_rate or 0)
+    Gauge("hitl_control_ticks_total", "control ticks", registry=registry).set(m.ticks)
     modes = Gauge("hitl_robots", "robots by mode", ["mode"], registry=registry)
-    for mode, n in m["robots_by_mode"].items():
+    for mode, n in m.robots_by_mode.items():
         modes.labels(mode).set(n)
     Gauge("hitl_queue_length", "open assistance requests", registry=registry).set(len(fleet.requests()))
-    for name, doc, key in (
-        ("hitl_queue_oldest_unclaimed_seconds", "wait of the oldest unclaimed request", "queue_oldest_unclaimed_s"),
-        ("hitl_queue_wait_max_seconds", "longest wait from request to claim", "queue_wait_max_s"),
+    for name, doc, value in (
+        ("hitl_queue_oldest_unclaimed_seconds", "wait of the oldest unclaimed request", m.queue_oldest_unclaimed_s),
+        ("hitl_queue_wait_max_seconds", "longest wait from request to claim", m.queue_wait_max_s),
     ):
-        Gauge(name, doc, registry=registry).set(m[key] or 0)
+        Gauge(name, doc, registry=registry).set(value or 0)
     return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)

@@ -35,13 +35,14 @@ from pathlib import Path
 from sqlalchemy.orm import sessionmaker
 
 from server import lease, registry
-from server.assistance import AssistanceRequest
 from server.errors import ServiceError
-from server.robot import U_HISTORY, RobotView
+from server.finetune.scheduler import ScheduleStatus
+from server.fleet.assistance import AssistanceRequest
+from server.fleet.metrics import MetricsReport
+from server.fleet.robot import U_HISTORY, RobotView
+from server.fleet.slots import PolicySlot, load_slot
 from server.runtime.wire import Call, Hello, Reply, SlotRef, Snapshot, TimelineTail
-from server.scheduler import ScheduleStatus
 from server.settings import Settings
-from server.slots import PolicySlot, load_slot
 from sim.spaces import TeleopCommand
 
 log = logging.getLogger("hitl.runtime")
@@ -98,7 +99,7 @@ class RemoteFleet:
         self._views: dict[int, tuple[float, RobotView]] = {}
         self._robots: tuple[int, ...] = ()
         self._requests: list[AssistanceRequest] = []
-        self._metrics: dict = {}
+        self._metrics: MetricsReport | None = None
         self._schedule: ScheduleStatus | None = None
         self._ticks = 0
         self._first = threading.Event()
@@ -217,8 +218,10 @@ class RemoteFleet:
     def requests(self) -> list[AssistanceRequest]:
         return list(self._requests)
 
-    def metrics(self) -> dict:
-        return dict(self._metrics)
+    def metrics(self) -> MetricsReport:
+        if (m := self._metrics) is None:  # a snapshot that joins the feed always carries them
+            raise ServiceError(503, "the fleet runtime has not sent its metrics yet")
+        return m
 
     def schedule_status(self) -> ScheduleStatus | None:
         """The runtime's nightly schedule and the jobs it started, as of its last report (once a second)."""

@@ -33,8 +33,8 @@ from multiprocessing import connection
 from multiprocessing.connection import Connection, Listener
 
 from server.errors import ServiceError
+from server.finetune.scheduler import ScheduleStatus
 from server.runtime.wire import CALLS, ROBOT_CALLS, Call, Hello, Reply, Snapshot, portable, timeline_since
-from server.scheduler import ScheduleStatus
 
 log = logging.getLogger("hitl.runtime")
 SWITCH_INTERVAL_S = 0.001  # the runtime process's (sys.setswitchinterval), set once it serves API processes

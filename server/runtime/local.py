@@ -5,6 +5,10 @@ open, the ``Fleet`` (control loop, controller, recording, workers) and the night
 launcher. ``hitl serve`` runs it in the API's own process (``api_workers = 0``, the embedded default)
 or in a process of its own that API processes reach through ``server.runtime.host`` (``api_workers``
 > 0, ``service.replicas``).
+
+Two words, two things: the *fleet* is ``server.fleet.Fleet`` (the robots, the control loop, the
+operators' actions); the *fleet runtime* is this class, the fleet with what runs once per service
+around it.
 """
 
 from __future__ import annotations
@@ -15,9 +19,9 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import sessionmaker
 
 from server.db import make_engine, migrate, session_factory
+from server.finetune.scheduler import FileClock, JobLauncher, Scheduler, ScheduleStatus, local_now
 from server.fleet import Fleet
-from server.recording import recover
-from server.scheduler import FileClock, JobLauncher, Scheduler, ScheduleStatus, local_now
+from server.fleet.recording import recover
 from server.settings import Settings
 
 log = logging.getLogger("hitl.server")

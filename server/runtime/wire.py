@@ -20,9 +20,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-from server.assistance import AssistanceRequest
-from server.robot import RobotView
-from server.scheduler import ScheduleStatus
+from server.finetune.scheduler import ScheduleStatus
+from server.fleet.assistance import AssistanceRequest
+from server.fleet.metrics import MetricsReport
+from server.fleet.robot import RobotView
 
 # The FleetPort members an API process calls on the runtime; those that change a robot's mode answer
 # with its view as the runtime shows it after the call (a heartbeat or a command changes no mode).
@@ -78,7 +79,7 @@ class Snapshot:
     views: dict[int, RobotView]
     requests: list[AssistanceRequest]
     robots: tuple[int, ...]
-    metrics: dict | None = None
+    metrics: MetricsReport | None = None
     schedule: ScheduleStatus | None = None
     full: bool = False
 

@@ -1,10 +1,10 @@
 """Robot workers: how the fleet talks to its robots.
 
 - ``base``: the ``RobotWorker`` contract, ``WorkerFault``, ``Priority``, ``wait_any``.
-- ``process``: ``ProcessWorker``, one simulated robot per spawned process.
+- ``pool``: ``PoolWorker``, robots in spawned processes: ``pool_workers`` puts several robots in each
+  (a process per robot spends much of a small machine's CPU switching between them),
+  ``process_workers`` one robot per process (a robot's crash, niceness and kill are its own).
 - ``in_process``: ``InProcessWorker``, the robot's task stepped in the caller's thread.
-- ``pool``: ``PoolWorker``, several robots per process, so one wake-up serves several robots' steps
-  (a process per robot spends much of a small machine's CPU switching between them).
 - ``ray_actors``: ``RayWorker``, several robots per Ray actor, on a local instance or a cluster
   (``pip install '.[ray]'``; Ray is imported only when used).
 - ``registry``: ``WORKERS``, the back ends the settings' ``worker`` name selects from.
@@ -12,9 +12,8 @@
 
 from server.workers.base import Priority, RobotWorker, WorkerFactory, WorkerFault, wait_any
 from server.workers.in_process import InProcessWorker, in_process_workers
-from server.workers.pool import PoolFactory, PoolWorker
-from server.workers.process import ProcessWorker, process_workers
-from server.workers.registry import WORKERS, pool_workers
+from server.workers.pool import PoolFactory, PoolWorker, pool_workers, process_workers
+from server.workers.registry import WORKERS
 
 __all__ = [
     "WORKERS",
@@ -22,7 +21,6 @@ __all__ = [
     "PoolFactory",
     "PoolWorker",
     "Priority",
-    "ProcessWorker",
     "RobotWorker",
     "WorkerFactory",
     "WorkerFault",

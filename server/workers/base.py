@@ -1,12 +1,12 @@
 """The robot worker contract: how the fleet talks to one robot, whatever runs it.
 
-``RobotWorker`` is the seam a back end implements (a process per robot, a pool, Ray actors).
+``RobotWorker`` is the seam a back end implements (spawned processes, the caller's thread, Ray actors).
 Nothing above it touches processes, pipes, pids or CPU priorities. A worker takes one request at a
 time (``request_reset`` / ``request_step``), answers it with a ``RobotFrame`` that ``poll`` returns
 without blocking, and reports failures as ``WorkerFault``. ``wait_any`` is the free-running loop's
 wait over workers of any back end; ``WorkerFactory`` is what a back end gives the fleet.
 
-The back ends (``process``, ``in_process``, ``pool``, ``ray_actors``) implement this module and the registry
+The back ends (``pool``, ``in_process``, ``ray_actors``) implement this module and the registry
 (``server.workers.registry``) names them; this module imports neither.
 """
 

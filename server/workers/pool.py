@@ -1,4 +1,5 @@
-"""The ``pool`` worker back end: several simulated robots per process.
+"""The process-spawning worker back ends: ``pool`` (several simulated robots per process) and
+``process`` (one robot per process: the pool with one robot per host).
 
 With a process per robot, every control step of every robot is a context switch into another
 process: on a 2-core machine with 16 robots the workers spent 5.8 ms of CPU per env step against 3.9
@@ -12,13 +13,18 @@ Each robot still has its own ``PoolWorker`` (the ``RobotWorker`` contract: one r
 process that dies faults every robot it held, and each is restarted on a live host (or a new one).
 Priorities apply per host: it runs at the control loop's niceness while any of its robots is under
 teleop (when the service may raise it), at the workers' niceness otherwise.
+
+``process`` (``process_workers``, the default) is this pool with one robot per host, named ``robot-<id>``:
+each robot's crash stays its own, its niceness is its own, and killing the robot kills its process.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing as mp
 import os
+import select
 import time
 import traceback
 from collections.abc import Sequence
@@ -26,8 +32,10 @@ from multiprocessing.connection import Connection, wait
 
 import numpy as np
 
-from server.workers.base import Priority, RobotWorker, WorkerFault
+from server.workers.base import Priority, RobotWorker, WorkerFactory, WorkerFault
 from sim.frame import RobotFrame
+
+log = logging.getLogger("hitl.workers")
 
 
 def _host(conn: Connection) -> None:
@@ -58,11 +66,12 @@ def _host(conn: Connection) -> None:
             conn.send((rid, seq, "error", traceback.format_exc(limit=3)))
 
     pending: list[tuple] = []  # resets and steps not answered yet, in arrival order
+    arrived = _poller(conn)
     try:
         while True:
             try:  # everything that has arrived (block only when there is nothing left to do)
                 waiting = [] if pending else [conn.recv()]
-                while conn.poll():
+                while arrived.poll(0):
                     waiting.append(conn.recv())
             except (EOFError, OSError):
                 return
@@ -97,18 +106,29 @@ def _host(conn: Connection) -> None:
                 task.close()
 
 
+def _poller(conn: Connection) -> select.poll:
+    """Whether ``conn`` has something to read (or its other end is gone): ``poll(0)``, one system call,
+    where ``Connection.poll`` builds a selector each time."""
+    poller = select.poll()
+    poller.register(conn.fileno(), select.POLLIN)
+    return poller
+
+
 class _Host:
-    """One host process and the answers it has sent that no robot has polled yet."""
+    """One host process and the answers it has sent that no robot has polled yet. A host of ``capacity``
+    1 is its robot's own process."""
 
     _ctx = mp.get_context("spawn")
+    _priority_denied = False  # raising a priority needs CAP_SYS_NICE: logged once per service
 
-    def __init__(self, name: str, niceness: int) -> None:
+    def __init__(self, name: str, niceness: int, capacity: int) -> None:
         parent, child = self._ctx.Pipe()
         self.process = self._ctx.Process(target=_host, args=(child,), daemon=True, name=name)
         self.process.start()
         child.close()
         self.conn = parent
-        self.niceness = niceness
+        self._arrived = _poller(parent)
+        self.niceness, self.capacity = niceness, capacity
         self.robots: set[int] = set()
         self.control: set[int] = set()  # robots that asked for the control loop's priority
         self.answers: dict[tuple[int, int], tuple[str, object]] = {}  # (robot, seq) -> (status, payload)
@@ -120,6 +140,9 @@ class _Host:
     def alive(self) -> bool:
         return self.broken is None and self.process.is_alive()
 
+    def fault(self) -> WorkerFault:
+        return WorkerFault(self.broken or f"worker process exited (code {self.process.exitcode})")
+
     def send(self, message: tuple) -> None:
         if self.broken is not None:
             raise WorkerFault(self.broken)
@@ -129,18 +152,26 @@ class _Host:
             self._break(f"worker pipe broke: {exc}")
             raise WorkerFault(self.broken) from exc
 
-    def drain(self) -> None:
-        """Moves every answer waiting in the pipe into ``answers`` (never blocks)."""
+    def drain(self, until: tuple[int, int] | None = None, ready: bool = False) -> tuple[str, object] | None:
+        """Moves the answers waiting in the pipe into ``answers`` (never blocks), up to ``until``'s, which
+        it returns instead; ``ready``: the pipe is known to be readable, one answer is read without polling
+        it. A host that died closed its end of the pipe, which reads as ready: its exit is found here,
+        without a liveness check (a ``waitpid``) per busy robot per tick."""
         if self.broken is not None:
-            return
+            return None
         try:
-            while self.conn.poll():
+            while ready or self._arrived.poll(0):
                 rid, seq, status, payload = self.conn.recv()
+                if (rid, seq) == until:
+                    return status, payload
                 self.answers[(rid, seq)] = (status, payload)
+                if ready:
+                    return None
         except (EOFError, OSError) as exc:
             self.process.join(timeout=0.5)
             code = self.process.exitcode
             self._break(f"worker process exited (code {code})" if code is not None else f"worker pipe broke: {exc}")
+        return None
 
     def _break(self, why: str) -> None:
         self.broken = why
@@ -148,13 +179,18 @@ class _Host:
             self.process.kill()
 
     def renice(self) -> bool:
+        """The control loop's niceness (0) while a robot here is under teleop, ``niceness`` otherwise.
+        Raising a priority again needs CAP_SYS_NICE; without it the host stays at ``niceness``."""
         want = 0 if self.control else self.niceness
         if self._nice == want or self.process.pid is None:
             return True
         try:
             os.setpriority(os.PRIO_PROCESS, self.process.pid, want)
         except PermissionError:
-            if self._nice is None:
+            if not _Host._priority_denied:
+                log.info("cannot raise worker priority for teleoperated robots (needs CAP_SYS_NICE)")
+            _Host._priority_denied = True
+            if self._nice != self.niceness:
                 with contextlib.suppress(PermissionError, ProcessLookupError):
                     os.setpriority(os.PRIO_PROCESS, self.process.pid, self.niceness)
                     self._nice = self.niceness
@@ -163,6 +199,10 @@ class _Host:
             return False
         self._nice = want
         return True
+
+    def kill(self) -> None:
+        self._break(self.broken or "worker was killed")
+        self.process.join(timeout=1.0)  # reaped: not alive from here on
 
     def close(self) -> None:
         with contextlib.suppress(OSError, BrokenPipeError):
@@ -175,13 +215,13 @@ class _Host:
 
 
 class PoolWorker(RobotWorker):
-    """One robot on a shared host process."""
+    """One robot on a host process: shared with others (``pool``) or its own (``process``)."""
 
     def __init__(self, host: _Host, robot_id: int, task: str) -> None:
         super().__init__()
         self.host, self.robot_id = host, robot_id
         self._killed = False
-        self._seq = 0  # the request in flight
+        self._key = (robot_id, 0)  # the request in flight: (robot, seq)
         host.robots.add(robot_id)
         host.send(("open", robot_id, 0, task))
 
@@ -190,18 +230,16 @@ class PoolWorker(RobotWorker):
         """The host process this robot's physics runs in (shared with the host's other robots)."""
         return self.host.process.pid
 
-    @property
-    def _key(self) -> tuple[int, int]:
-        return (self.robot_id, self._seq)
-
     def _request(self, cmd: str, arg) -> None:
         if self._killed:
             raise WorkerFault("worker was killed")
-        for stale in [k for k in self.host.answers if k[0] == self.robot_id]:  # a dropped predecessor's
-            del self.host.answers[stale]
-        self.host.seq += 1
-        self._seq = self.host.seq
-        self.host.send((cmd, self.robot_id, self._seq, arg))
+        host = self.host
+        if host.answers:  # a dropped predecessor's
+            for stale in [k for k in host.answers if k[0] == self.robot_id]:
+                del host.answers[stale]
+        host.seq += 1
+        self._key = (self.robot_id, host.seq)
+        host.send((cmd, self.robot_id, host.seq, arg))
         self.busy = True
 
     def request_reset(self, seed: int) -> None:
@@ -213,11 +251,15 @@ class PoolWorker(RobotWorker):
     def poll(self) -> RobotFrame | None:
         if self._killed:
             raise WorkerFault("worker was killed")
-        self.host.drain()
-        answer = self.host.answers.pop(self._key, None) if self.busy else None
+        host = self.host
+        if not self.busy:  # nothing to read: only whether its process still lives
+            if not host.alive():
+                raise host.fault()
+            return None
+        answer = host.answers.pop(self._key, None) or host.drain(self._key)
         if answer is None:
-            if not self.host.alive():
-                raise WorkerFault(self.host.broken or f"worker process exited (code {self.host.process.exitcode})")
+            if host.broken is not None:
+                raise host.fault()
             return None
         self.busy = False
         status, payload = answer
@@ -228,20 +270,27 @@ class PoolWorker(RobotWorker):
     def alive(self) -> bool:
         return not self._killed and self.host.alive()
 
-    def kill(self) -> None:
-        """Drops this robot from its host (the host and its other robots carry on)."""
+    def _leave(self, kill: bool) -> None:
         if not self._killed:
             self._killed = True
             self.host.robots.discard(self.robot_id)
             self.host.control.discard(self.robot_id)
             self.host.answers.pop(self._key, None)
-            with contextlib.suppress(WorkerFault):
-                self.host.send(("drop", self.robot_id, 0, None))
-            self.host.renice()
+            if kill and self.host.capacity == 1:  # its own process: a step that never returns stops too
+                self.host.kill()
+            else:
+                with contextlib.suppress(WorkerFault):
+                    self.host.send(("drop", self.robot_id, 0, None))
+                self.host.renice()
         self.busy = False
 
+    def kill(self) -> None:
+        """Drops this robot from its host (the host and its other robots carry on); a host of one robot
+        is killed with it."""
+        self._leave(kill=True)
+
     def close(self) -> None:
-        self.kill()
+        self._leave(kill=False)
         if not self.host.robots:
             self.host.close()
 
@@ -265,27 +314,41 @@ class PoolWorker(RobotWorker):
     ) -> None:
         pool = [w for w in workers if isinstance(w, PoolWorker)]
         first = [w for w in urgent if isinstance(w, PoolWorker)]
-        hosts = list({id(w.host): w.host for w in pool}.values())
         deadline = time.monotonic() + timeout
-        while True:
-            for host in hosts:
-                host.drain()
-            ready = sum(1 for w in pool if w._key in w.host.answers or not w.host.alive())
-            left = deadline - time.monotonic()
-            if ready >= min_ready or left <= 0 or any(w._key in w.host.answers for w in first):
+        while True:  # a host that died reads as ready (its drain marks it broken)
+            owing = [w for w in pool if w.host.broken is None and w._key not in w.host.answers]
+            ready = len(pool) - len(owing)
+            if ready >= min_ready or any(w._key in w.host.answers for w in first):
                 return
-            if not wait([h.conn for h in hosts if h.alive()] or [], timeout=left):
-                return
+            hosts = {id(w.host.conn): w.host for w in owing}
+            conns = [h.conn for h in hosts.values()]
+            urgent_conns = {id(w.host.conn) for w in first}
+            while True:
+                left = deadline - time.monotonic()
+                got = wait(conns, timeout=left) if left > 0 else []
+                if not got:
+                    return
+                shared = [hosts[id(c)] for c in got if hosts[id(c)].capacity > 1]
+                if shared:  # several robots' answers may be waiting: read them, then count again
+                    for host in shared:
+                        host.drain(ready=True)
+                    break
+                # one-robot hosts: each that answered (or died) is one robot ready, which its poll reads
+                ready += len(got)
+                if ready >= min_ready or any(id(c) in urgent_conns for c in got):
+                    return
+                conns = [c for c in conns if c not in got]
 
 
 class PoolFactory:
     """Places each new robot on the live host with the fewest robots, below ``robots_per_process``;
-    starts a host when none has room. Hosts whose robots all left are closed."""
+    starts a host when none has room. Hosts whose robots all left are closed. ``name``: the host
+    processes' names, from ``{host}`` (hosts started so far) and ``{robot}`` (the first robot's id)."""
 
-    def __init__(self, niceness: int, robots_per_process: int) -> None:
+    def __init__(self, niceness: int, robots_per_process: int, name: str = "robots-{host}") -> None:
         if robots_per_process < 1:
             raise ValueError(f"robots_per_process must be >= 1, got {robots_per_process}")
-        self.niceness, self.per_process = niceness, robots_per_process
+        self.niceness, self.per_process, self.name = niceness, robots_per_process, name
         self.hosts: list[_Host] = []
         self._started = 0  # hosts started so far (their process names: robots-0, robots-1, ...)
 
@@ -297,7 +360,16 @@ class PoolFactory:
         room = [h for h in self.hosts if len(h.robots) < self.per_process]
         host = min(room, key=lambda h: len(h.robots)) if room else None
         if host is None:
-            host = _Host(f"robots-{self._started}", self.niceness)
+            host = _Host(self.name.format(host=self._started, robot=robot_id), self.niceness, self.per_process)
             self._started += 1
             self.hosts.append(host)
         return PoolWorker(host, robot_id, task)
+
+
+def pool_workers(niceness: int, robots_per_process: int) -> WorkerFactory:
+    return PoolFactory(niceness, robots_per_process)
+
+
+def process_workers(niceness: int) -> WorkerFactory:
+    """A process per robot, named ``robot-<id>``: the pool with one robot per host."""
+    return PoolFactory(niceness, 1, name="robot-{robot}")

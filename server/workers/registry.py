@@ -12,20 +12,15 @@ from typing import TYPE_CHECKING
 
 from server.workers.base import WorkerFactory
 from server.workers.in_process import in_process_workers
-from server.workers.pool import PoolFactory
-from server.workers.process import process_workers
+from server.workers.pool import pool_workers, process_workers
 from server.workers.ray_actors import RayFactory
 
 if TYPE_CHECKING:
     from server.settings import Settings
 
 
-def pool_workers(niceness: int, robots_per_process: int) -> WorkerFactory:
-    return PoolFactory(niceness, robots_per_process)
-
-
 WORKERS: dict[str, Callable[[Settings], WorkerFactory]] = {
-    "process": lambda s: process_workers(s.worker_niceness),
+    "process": lambda s: process_workers(s.worker_niceness),  # the pool, one robot per process
     "pool": lambda s: pool_workers(s.worker_niceness, s.robots_per_process),
     "in-process": lambda s: in_process_workers(),
     "ray": lambda s: RayFactory(s, s.robots_per_process, s.ray_cpus_per_actor),

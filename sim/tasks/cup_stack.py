@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.env import TABLE_TOP_Z, ObsSpec, Task
+from sim.env import TABLE_TOP_Z, ObsSpec, Task, TaskGoal
 from sim.objects import CupGeometry, make_cup
 from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
@@ -127,6 +127,13 @@ class CupStackTask(Task):
             "red_visible": self._red_visible(),
             "table_z": TABLE_TOP_Z,
         }
+
+    def goal(self, scene: dict) -> TaskGoal:
+        """The description, and whether the red cup is hidden from the robot's camera."""
+        if "red_visible" not in scene:
+            return TaskGoal(self.description)
+        seen = "" if scene["red_visible"] else " The red cup is hidden from the robot's camera."
+        return TaskGoal(f"{self.description}.{seen}")
 
     def object_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         return {"green_cup": self.body_pose(self._green_body), "red_cup": self.body_pose(self._red_body)}

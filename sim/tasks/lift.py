@@ -17,12 +17,13 @@ unseen object as new in its input, as the paper's camera-based policy does
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sim.env import TABLE_TOP_Z, ObsSpec, Task
+from sim.env import TABLE_TOP_Z, ObsSpec, Task, TaskGoal
 from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
 
@@ -218,6 +219,13 @@ class LiftTask(Task):
             "rest_z": self._rest_z,
             "table_z": TABLE_TOP_Z,
         }
+
+    def goal(self, scene: dict) -> TaskGoal:
+        """The description and the yaw of the bar to grasp across (the object's own, in the world)."""
+        if "grasp_yaw" not in scene:
+            return TaskGoal(self.description)
+        yaw = math.degrees(float(scene["grasp_yaw"]))
+        return TaskGoal(f"{self.description}; grasp across its bar (yaw {yaw:.0f}°).")
 
     def object_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         return {self.object_name: self.body_pose(self._body)}

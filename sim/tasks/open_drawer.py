@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sim.env import TABLE_TOP_Z, ObsSpec, Task
+from sim.env import TABLE_TOP_Z, ObsSpec, Task, TaskGoal
 from sim.objects import CabinetGeometry, make_cabinet
 from sim.spaces import ActionSpace
 
@@ -104,6 +104,13 @@ class OpenDrawerTask(Task):
             "pull_axis": np.array([-1.0, 0.0, 0.0]),
             "table_z": TABLE_TOP_Z,
         }
+
+    def goal(self, scene: dict) -> TaskGoal:
+        """Which drawer to open: the operator knows it, the robot does not."""
+        intended = scene.get("intended")
+        if isinstance(intended, int) and 0 <= intended < len(DRAWER_NAMES):
+            return TaskGoal(f"Open the **{DRAWER_NAMES[intended]}** drawer (the robot does not know which).")
+        return TaskGoal(self.description)
 
     def metadata(self) -> dict:
         return super().metadata() | {"intended_drawer": self.intended, "intended_name": DRAWER_NAMES[self.intended]}

@@ -19,7 +19,7 @@ import numpy as np
 
 from storage import keys
 from storage.episodes import Episode, read_episode
-from storage.segments import Segment
+from storage.segments import Segment, SegmentStep
 
 COMMAND_DIM = 7  # delta_pos (3), delta_rot (3), gripper
 LABEL_CODES = {"good": 1, "bad": -1, None: 0}  # the per-frame code of a takeover's label
@@ -137,8 +137,8 @@ def from_segment(
     signal = seg.meta.get("signal")
     threshold = seg.meta.get("threshold")
 
-    def score(s: dict) -> float | None:
-        scores = {"denoising": s.get("uncertainty")} | (s.get("shadow") or {})
+    def score(s: SegmentStep) -> float | None:
+        scores = {"denoising": s.uncertainty} | s.shadow
         return scores.get(signal) if signal else None
 
     scores = [score(s) for s in steps]
@@ -146,13 +146,13 @@ def from_segment(
         task=str(seg.meta.get("task", "")),
         kind="takeover",
         source=seg.path.name,
-        obs=np.array([s[keys.STEP_OBSERVATION] for s in steps], np.float64).reshape(n, -1),
-        ee_pose=np.array([list(s["position"]) + list(s["quaternion"]) for s in steps], np.float64).reshape(n, 7),
+        obs=np.array([s.observation for s in steps], np.float64).reshape(n, -1),
+        ee_pose=np.array([list(s.position) + list(s.quaternion) for s in steps], np.float64).reshape(n, 7),
         gripper=np.zeros(n),  # not in a segment's steps
-        action=np.array([s[keys.STEP_ACTION] for s in steps], np.float64).reshape(n, -1),
+        action=np.array([s.action for s in steps], np.float64).reshape(n, -1),
         success=np.zeros(n, bool),
         action_source=np.full(n, keys.SOURCES.index(keys.SOURCE_OPERATOR), np.int64),
-        command=np.array([_command_row(s.get("command")) for s in steps], np.float64).reshape(n, COMMAND_DIM),
+        command=np.array([_command_row(s.command) for s in steps], np.float64).reshape(n, COMMAND_DIM),
         scored=np.array([v is not None and threshold is not None for v in scores], bool),
         score=np.array([v if v is not None and threshold is not None else 0.0 for v in scores], np.float64),
         threshold=np.full(n, float(threshold) if threshold is not None else 0.0),

@@ -14,7 +14,7 @@ def test_the_loop_bench_serves_a_fleet_with_the_bot_and_reports_from_the_databas
         f'worker = "in-process"\ncontrol_hz = 20\ntrace_policies = false\n'
         f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
     )
-    out = run_loop(4.0, "budgeted", config, tmp_path / "var", {"HITL_BUDGET_STEPS": "2"}, progress=False)
+    out = run_loop(4.0, "budgeted", config, tmp_path / "var", {"HITL_BUDGET": "2"}, progress=False)
     assert out["mode"] == "budgeted" and out["robots"] == 1
     assert out["bot"]["takeovers"] >= 1 and out["bot"]["commands"] >= 1 and out["bot"]["errors"] == 0
     assert out["takeovers_asked_by"].get("spread-stall", 0) >= 1  # the default signal asked, the bot answered

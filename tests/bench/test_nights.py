@@ -14,7 +14,7 @@ from bench.nights_quick import quick_config, quick_policy
 from server import lease as leases
 from server import registry
 from server.db import FinetuneJob, PolicyVersion, SegmentRecord
-from server.scheduler import next_due
+from server.finetune.scheduler import next_due
 from tests.helpers import wait_for
 
 

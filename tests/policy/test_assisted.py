@@ -37,7 +37,7 @@ def test_budgeted_takeovers_last_the_budget_and_shadow_signals_score_every_step(
     policy = tiny_policy()
     shadow = {"denoising": make_signal("denoising", policy, {"num_samples": 16, "max_modes": 2})}
     shadow["denoising"].calibration = {"threshold": 1e9}
-    cfg = AssistConfig(mode="budgeted", budget=3, n_envs=2)
+    cfg = AssistConfig(hand_back="budgeted", budget=3, n_envs=2)
     episodes, _ = run_assisted(policy, "lift-cube", [5, 6], _Every(10), shadow, cfg, progress=False)
     for ep in episodes:
         assert len(ep.operator) == len(ep.scores["denoising"]) == ep.steps
@@ -54,7 +54,7 @@ def test_full_teleop_in_continuous_mode_lets_the_operator_finish_the_task():
     policy = tiny_policy()
     driver = make_signal("full-teleop", policy)
     episodes, _ = run_assisted(
-        policy, "lift-cube", [7], driver, {}, AssistConfig(mode="continuous", n_envs=1), progress=False
+        policy, "lift-cube", [7], driver, {}, AssistConfig(hand_back="continuous", n_envs=1), progress=False
     )
     ep = episodes[0]
     # the robot asks at its first step (and holds), then the operator drives to the end
@@ -147,7 +147,7 @@ def test_an_operator_who_hands_back_when_held_gives_the_robot_back_holding_the_o
 
 def test_operator_hand_back_in_a_rollout_returns_control_once():
     policy = tiny_policy()
-    cfg = AssistConfig(mode="continuous", return_after=None, operator_hands_back=True, n_envs=1)
+    cfg = AssistConfig(hand_back="continuous", return_after=None, operator_hands_back=True, n_envs=1)
     episodes, _ = run_assisted(policy, "lift-cube", [3], _Every(10_000), {}, cfg, progress=False)
     ep = episodes[0]
     flags = np.asarray(ep.operator, int)
@@ -162,6 +162,6 @@ def test_assist_config_refuses_a_continuous_mode_nothing_hands_back():
     import pytest
 
     with pytest.raises(ValueError, match="nothing hands back"):
-        AssistConfig(mode="continuous", return_after=None)
+        AssistConfig(hand_back="continuous", return_after=None)
     with pytest.raises(ValueError, match="return_after"):
         AssistConfig(return_after=0)

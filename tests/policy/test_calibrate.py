@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from policy.calibrate import CalibrationError, calibrate, validation_uncertainty
+from policy.calibrate import CalibrationError, calibrate
 from policy.config import DiffusionPolicyConfig
 from policy.diffusion_policy import DiffusionPolicy
 from policy.uncertainty import UncertaintyConfig
@@ -42,16 +42,32 @@ def test_calibration_uses_only_the_validation_episodes(tmp_path):
     folder = _episodes(tmp_path / "demos", [7, 9, 11, 13, 15, 17, 19, 21, 23, 25])
     policy, info, ds = _policy(folder)
     cfg = UncertaintyConfig(num_samples=32)
-    rec = calibrate(policy, info, folder, 0.95, cfg, progress=False)
-    val = info["dataset"]["val_episodes"]
-    assert rec["episodes"] == val and not set(val) & set(info["dataset"]["train_episodes"])
+    rec = calibrate(policy, info, folder, 0.5, cfg, progress=False)
+    val, train = info["dataset"]["val_episodes"], info["dataset"]["train_episodes"]
+    assert list(rec.episodes) == val and not set(val) & set(train)
     lengths = {name: int(e - s) for name, s, e in zip(ds.names, ds.episode_starts, ds.episode_ends, strict=True)}
-    assert rec["samples"] == sum(lengths[n] for n in val)
-    u, _ = validation_uncertainty(policy, folder, val, cfg, progress=False)
-    assert rec["threshold"] == pytest.approx(float(np.quantile(u, 0.95)))
-    # scoring the training episodes instead gives a different sample count: they are not mixed in
-    u_train, _ = validation_uncertainty(policy, folder, info["dataset"]["train_episodes"], cfg, progress=False)
-    assert len(u_train) + rec["samples"] == len(ds.obs)
+    assert rec.samples == sum(lengths[n] for n in val)
+    assert rec.threshold == rec.u_median  # the quantile of U over those steps
+    assert rec.u_mean <= rec.u_max and rec.uncertainty == cfg
+    # the record calibration.json keeps, in its order
+    record = rec.to_dict()
+    assert list(record) == [
+        "threshold",
+        "quantile",
+        "validation_share_above",
+        "samples",
+        "episodes",
+        "episodes_checked",
+        "data",
+        "uncertainty",
+        "u_stats",
+    ]
+    assert record["episodes"] == val and record["uncertainty"] == cfg.to_dict()
+    assert record["u_stats"] == {"mean": rec.u_mean, "median": rec.u_median, "max": rec.u_max}
+    assert record["episodes_checked"] == {"identical": 0, "by_recipe": 0, "unverified": len(val)}
+    # the training episodes scored instead give the other steps: none of them is mixed in
+    swapped = {"dataset": {"train_episodes": val, "val_episodes": train}}
+    assert calibrate(policy, swapped, folder, 0.5, cfg, progress=False).samples + rec.samples == len(ds.obs)
 
 
 def test_calibration_refuses_unsafe_inputs(tmp_path):
@@ -70,7 +86,7 @@ def test_calibration_refuses_unsafe_inputs(tmp_path):
         calibrate(policy, digests, folder, progress=False)
     # file sizes are no evidence (the same steps recorded twice differ in size): an older record is not read
     sizes = {"dataset": {**info["dataset"], "val_episode_bytes": {n: 1 for n in info["dataset"]["val_episodes"]}}}
-    assert calibrate(policy, sizes, folder, config=UncertaintyConfig(num_samples=8), progress=False)["samples"] > 0
+    assert calibrate(policy, sizes, folder, config=UncertaintyConfig(num_samples=8), progress=False).samples > 0
     with pytest.raises(ValueError, match="quantile"):
         calibrate(policy, info, folder, quantile=1.5, progress=False)
 
@@ -79,7 +95,7 @@ def test_validation_share_is_the_quantiles_complement(tmp_path):
     folder = _episodes(tmp_path / "demos", [20, 22, 24, 26, 28, 30, 32, 34, 36, 38])
     policy, info, _ = _policy(folder)
     rec = calibrate(policy, info, folder, 0.9, UncertaintyConfig(num_samples=32), progress=False)
-    assert abs(rec["validation_share_above"] - 0.1) <= 1.5 / rec["samples"] + 1e-9
+    assert abs(rec.validation_share_above - 0.1) <= 1.5 / rec.samples + 1e-9
 
 
 def test_rollout_check_measures_the_share_above_on_autonomous_rollouts():

@@ -7,6 +7,7 @@ import torch
 from policy.config import DiffusionPolicyConfig
 from policy.controller import Controller, ControllerConfig, Mode
 from policy.diffusion_policy import DiffusionPolicy
+from policy.hand_back import HAND_BACK_FIELDS
 from policy.signals.base import Scores
 from sim.frame import RobotFrame
 from sim.spaces import TeleopCommand
@@ -230,3 +231,18 @@ def test_the_asking_signal_must_be_calibrated():
     policy = tiny_policy()
     with pytest.raises(SignalError, match="not calibrated"):
         Controller(policy, {"denoising": make_signal("denoising", policy)}, "denoising", KinematicTask().action_space)
+
+
+def test_the_hand_back_rule_has_one_vocabulary():
+    """``HAND_BACK_FIELDS`` name the controller's hand-back settings, the service's and the assisted rollouts'
+    alike; the old alias ``calm_steps`` is gone (``return_after``)."""
+    from dataclasses import fields
+
+    from policy.assisted import AssistConfig
+
+    assert {f.name for f in fields(ControllerConfig)} >= set(HAND_BACK_FIELDS)
+    assert {f.name for f in fields(AssistConfig)} >= set(HAND_BACK_FIELDS)
+    assert not hasattr(ControllerConfig(), "calm_steps") and not hasattr(AssistConfig(), "mode")
+    assert AssistConfig(hand_back="continuous").hand_back == "continuous"
+    with pytest.raises(ValueError, match="hand_back must be one of"):
+        AssistConfig(hand_back="sometimes")

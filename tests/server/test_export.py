@@ -25,7 +25,7 @@ def _fleet(tmp_path):
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
         control_hz=20,
-        budget_steps=100,  # the takeover lasts until the hand-back
+        budget=100,  # the takeover lasts until the hand-back
         record_episodes=True,
         console=False,
     )

@@ -44,7 +44,7 @@ def service(tmp_path_factory):
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
         worker="in-process",
         control_hz=20,
-        budget_steps=1000,  # a claimed robot stays under teleop while its commands are fuzzed
+        budget=1000,  # a claimed robot stays under teleop while its commands are fuzzed
     )
     migrate(settings.db_url)
     sessions = session_factory(make_engine(settings.db_url))

@@ -40,7 +40,7 @@ def service(tmp_path_factory):
     config = root / "ops.toml"
     config.write_text(
         f'data_dir = "{root / "var"}"\nhost = "127.0.0.1"\nport = {port}\nworker = "in-process"\n'
-        "control_hz = 20\nbudget_steps = 1000\nlease_seconds = 120\ntrace_policies = false\n\n"
+        "control_hz = 20\nbudget = 1000\nlease_seconds = 120\ntrace_policies = false\n\n"
         f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
     )
     settings = Settings.load(config)

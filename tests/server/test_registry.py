@@ -11,7 +11,7 @@ from server import registry
 from server.db import PolicyVersion
 from server.errors import ServiceError
 from tests.helpers import tiny_policy_folder
-from tests.server.test_fleet import _fleet
+from tests.server.fleet.test_fleet import _fleet
 
 
 def test_references_parse_or_say_what_is_expected():

@@ -37,8 +37,8 @@ def _service(root, database_url: str | None):
         robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
         worker="in-process",
         control_hz=20,
-        budget_steps=3,
-        cooldown_steps=0,  # robots ask again at once after a hand-back
+        budget=3,
+        cooldown=0,  # robots ask again at once after a hand-back
         lease_seconds=5.0,
         console=False,
     )
@@ -208,7 +208,7 @@ def test_a_console_log_in_through_one_api_process_holds_at_the_other(replicated)
 def test_a_robots_timeline_crosses_as_tails_and_is_rebuilt_as_the_runtime_has_it():
     from types import SimpleNamespace
 
-    from server.robot import U_HISTORY, Robot, TimelinePoint
+    from server.fleet.robot import U_HISTORY, Robot, TimelinePoint
     from server.runtime.host import RuntimeHost
     from server.runtime.wire import portable, timeline_since
 

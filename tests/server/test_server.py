@@ -31,8 +31,8 @@ def service(tmp_path_factory):
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
         lease_seconds=1.5,
-        budget_steps=3,
-        cooldown_steps=0,  # robots ask again at once after a hand-back: each test finds them waiting and held
+        budget=3,
+        cooldown=0,  # robots ask again at once after a hand-back: each test finds them waiting and held
         control_hz=20,
         shadow_signals=["output-variance", "random"],
     )
@@ -128,9 +128,9 @@ def test_takeover_round_trip_records_a_segment(service):
     obs, labels = segment.labels()
     assert obs.shape[0] == labels.shape[0] == 3 and np.isfinite(labels).all()
     assert segment.meta["robot"] == 0 and segment.end["status"] == "closed"
-    assert [s["command"]["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
+    assert [s.command["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
     # every score but the denoising U (recorded on its own): the asking signal (the default) and the shadows
-    assert all(set(s["shadow"]) == {"spread-stall", "output-variance", "random"} for s in segment.steps)
+    assert all(set(s.shadow) == {"spread-stall", "output-variance", "random"} for s in segment.steps)
     fields = segment.fields
     assert len(fields) == 3 and len(fields[0]["entities"][0]["arrows"]) > 0  # the vector field, for Foxglove
     assert before["episode_id"] == start["episode_id"]
@@ -152,7 +152,7 @@ def test_an_expired_lease_requeues_the_request(service):
 
 
 def test_the_operator_bot_completes_takeovers_through_the_api(service):
-    from server.operator_bot import OperatorBot
+    from client.operator_bot import OperatorBot
 
     migrate(service.settings.db_url)
     token = create_token(session_factory(make_engine(service.settings.db_url)), "bot", "operator")
@@ -269,7 +269,7 @@ def test_a_shadow_run_scores_every_step_and_never_asks(tmp_path):
 
 
 def test_the_operator_bot_survives_an_episode_that_ends_mid_takeover(service):
-    from server.operator_bot import OperatorBot
+    from client.operator_bot import OperatorBot
     from sim.view import OperatorView, ViewUnavailable
 
     with pytest.raises(ViewUnavailable):  # the view of a robot with no scene to drive

@@ -15,8 +15,8 @@ from mcap.reader import make_reader
 
 from server.auth import create_token
 from server.db import EpisodeRecord, SegmentRecord, make_engine, migrate, session_factory
-from server.recording import resolve
 from server.settings import RobotGroup, Settings
+from storage.paths import in_store
 from storage.segments import read_segment
 from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
 
@@ -40,7 +40,7 @@ def _asking_fleet(tmp_path, count: int = 1, **extra):
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=count, policy=policy)],
         control_hz=20,
-        budget_steps=100,
+        budget=100,
         **extra,
     )
     sessions = _sessions(settings)
@@ -57,7 +57,7 @@ def _assert_segments_closed_by_worker_fault(settings, sessions) -> None:
     with sessions() as s:
         rows = s.query(SegmentRecord).all()
         assert rows and all(r.status == "closed" and r.ended_by == "worker-fault" for r in rows)
-    ends = [read_segment(resolve(settings.data_dir, r.path)).end for r in rows]
+    ends = [read_segment(in_store(settings.data_dir, r.path)).end for r in rows]
     assert all(e["status"] == "closed" and e["ended_by"] == "worker-fault" for e in ends)  # the file says why
 
 
@@ -165,7 +165,7 @@ def _asking_config(tmp_path, extra: str = ""):
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
     config = tmp_path / "fleet.toml"
     config.write_text(
-        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget_steps = 100\n{extra}'
+        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget = 100\n{extra}'
         f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
     )
     settings = Settings.load(config)
@@ -223,13 +223,13 @@ def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status, ended_by
             row = s.query(SegmentRecord).one()
             assert row.status == "open"  # the crash left it open, its file cut off:
             with pytest.raises(Exception, match="magic|footer|summary|EndOfFile|Invalid|record"):
-                _standard_read(resolve(settings.data_dir, row.path))
+                _standard_read(in_store(settings.data_dir, row.path))
         _restart_to_recover(config, port, url)
     with sessions() as s:
         row = s.query(SegmentRecord).one()
         assert row.status == status and row.ended_by == ended_by and row.steps >= len(sent)
         assert not Path(row.path).is_absolute()  # relative to data_dir: the folder can move
-        path = resolve(settings.data_dir, row.path)
+        path = in_store(settings.data_dir, row.path)
         interrupted = s.query(EpisodeRecord).filter(EpisodeRecord.outcome.is_(None)).all()
         assert not interrupted  # no episode row is left open
         first = s.query(EpisodeRecord).order_by(EpisodeRecord.id).first()
@@ -241,7 +241,7 @@ def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status, ended_by
     expected = "interrupted" if sig == signal.SIGKILL else "stopped"
     assert first.outcome == expected and first.ended_at is not None
     if sig == signal.SIGKILL:  # the episode file open at the crash is a complete MCAP too
-        episode = _standard_read(resolve(settings.data_dir, first.path))
+        episode = _standard_read(in_store(settings.data_dir, first.path))
         outcome = [m for topic, m in episode if topic == "/outcome"]
         assert outcome == [{"success": False, "steps": first.steps, "reason": "interrupted"}]
 
@@ -266,7 +266,7 @@ def test_whole_episodes_are_recorded_when_asked(tmp_path):
 
     with sessions() as s:
         row = s.get(EpisodeRecord, done[-1]["id"])
-    ep = read_episode(resolve(settings.data_dir, row.path))
+    ep = read_episode(in_store(settings.data_dir, row.path))
     assert len(ep) == row.steps == done[-1]["steps"] and ep.outcome is not None
     assert set(ep.sources) == {"policy"}
 
@@ -292,13 +292,13 @@ def test_a_dead_inference_actor_holds_the_fleet_which_resumes_when_ray_restarts_
         assert pid != os.getpid()  # the policy and its signals run in the actor's process
         wait_for(lambda: all(r.steps > 3 for r in fleet.robots.values()), 60)
         os.kill(pid, signal.SIGKILL)
-        wait_for(lambda: fleet.inference_holds > 0, 30)  # every robot of the version holds meanwhile
+        wait_for(lambda: fleet.loop.inference_holds > 0, 30)  # every robot of the version holds meanwhile
         with fleet.lock:
             held = {r.id: r.steps for r in fleet.robots.values()}
         assert inference.failures >= 1
         time.sleep(0.3)
         with fleet.lock:
-            if fleet.inference_holds:  # still down: no robot moved on its policy
+            if fleet.loop.inference_holds:  # still down: no robot moved on its policy
                 assert {r.id: r.steps for r in fleet.robots.values()} == held
         wait_for(lambda: all(r.steps > held[r.id] + 3 for r in fleet.robots.values()), 120)  # resumed
         assert ray_local.get(inference.handle.pid.remote(), timeout=60) != pid  # on the restarted actor
@@ -329,6 +329,6 @@ def test_every_applied_teleop_step_survives_a_kill_right_after_it(tmp_path):
     with sessions() as s:
         row = s.query(SegmentRecord).one()
         assert row.status == "recovered"
-        path = resolve(settings.data_dir, row.path)
+        path = in_store(settings.data_dir, row.path)
     commands = [m["command"]["delta_pos"] for topic, m in _standard_read(path) if topic == "/takeover/step"]
     assert commands == sent, (len(commands), len(sent))  # all 30, in order: none lost

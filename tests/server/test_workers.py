@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from server.settings import Settings
-from server.workers import WORKERS, InProcessWorker, Priority, ProcessWorker, WorkerFault, wait_any
-from server.workers.pool import PoolFactory
+from server.workers import WORKERS, InProcessWorker, Priority, WorkerFault, wait_any
+from server.workers.pool import PoolFactory, process_workers
 from sim.frame import RobotFrame
 from tests.helpers import KinematicTask
 
@@ -48,8 +48,9 @@ def test_the_in_process_worker_keeps_the_contract():
 
 
 def test_the_process_worker_keeps_the_contract_and_maps_priorities_to_niceness():
-    worker = ProcessWorker("lift-cube", name="robot-test", niceness=7)
+    worker = WORKERS["process"](Settings(worker="process", worker_niceness=7))(3, "lift-cube")
     try:
+        assert worker.host.process.name == "robot-3" and worker.pid != os.getpid()  # its own process
         assert worker.prioritize(Priority.BACKGROUND)
         assert os.getpriority(os.PRIO_PROCESS, worker.pid) == 7
         if worker.prioritize(Priority.CONTROL):  # raising a priority needs CAP_SYS_NICE
@@ -63,7 +64,7 @@ def test_the_process_worker_keeps_the_contract_and_maps_priorities_to_niceness()
 
 
 def test_a_busy_process_worker_that_dies_faults_with_its_exit_code():
-    worker = ProcessWorker("lift-cube", name="robot-test", niceness=7)
+    worker = process_workers(7)(0, "lift-cube")
     try:
         worker.request_reset(1)
         hold = _answer(worker).hold
@@ -75,6 +76,48 @@ def test_a_busy_process_worker_that_dies_faults_with_its_exit_code():
     finally:
         worker.kill()
         worker.join(5)
+
+
+def test_process_workers_isolate_each_robot_in_its_own_process():
+    factory = process_workers(7)
+    a, b, bad = factory(0, "lift-cube"), factory(1, "lift-cube"), factory(2, "no-such-task")
+    try:
+        assert len({a.pid, b.pid, bad.pid}) == 3  # a process per robot
+        if a.prioritize(Priority.CONTROL):  # niceness is per robot: b stays in the background
+            assert os.getpriority(os.PRIO_PROCESS, a.pid) == 0
+        assert b.prioritize(Priority.BACKGROUND) and os.getpriority(os.PRIO_PROCESS, b.pid) == 7
+        bad.request_reset(1)  # a task that cannot be built faults its robot alone
+        with pytest.raises(WorkerFault, match="no-such-task"):
+            _answer(bad, timeout=60)
+        a.request_reset(1)
+        b.request_reset(1)
+        wait_any([a, b], 120.0, min_ready=2)
+        fa, fb = a.poll(), b.poll()
+        assert fa is not None and fb is not None
+        a.request_step(fa.hold)  # in flight when a's process dies
+        b.request_step(fb.hold)
+        os.kill(a.pid, 9)
+        with pytest.raises(WorkerFault, match="exited"):
+            _answer(a, timeout=10)
+        assert _answer(b).t == 1 and b.alive()  # b carries on
+        b.request_step(fb.hold)
+        pid = b.pid
+        b.kill()  # killing a robot kills its process, even with a step in flight
+        assert not b.alive() and not b.host.process.is_alive()
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+        a.kill()
+        again = factory(0, "lift-cube")  # the fleet's restart: a fresh process
+        assert again.pid not in (a.pid, pid) and again.host.process.name == "robot-0"
+        again.request_reset(1)
+        assert _answer(again).t == 0
+        again.close()
+        again.join(5)
+    finally:
+        for w in (a, b, bad):
+            w.close()
+        for w in (a, b, bad):
+            w.join(5)
 
 
 def test_pool_workers_keep_the_contract_and_share_a_process():

@@ -1,3 +1,4 @@
+import json
 import math
 
 import numpy as np
@@ -59,7 +60,7 @@ def test_small_command_is_applied_exactly():
     assert target.action[9] == -1.0
 
 
-def test_action_space_normalisation_round_trip_and_bounds():
+def test_action_space_normalisation_spans_the_bounds():
     rng = np.random.default_rng(0)
     rot = Rotation.random(5, random_state=1).as_matrix()
     actions = np.concatenate(
@@ -67,7 +68,7 @@ def test_action_space_normalisation_round_trip_and_bounds():
     )
     unit = SPACE.normalize(actions)
     assert unit.min() >= 0.0 and unit.max() <= 1.0
-    np.testing.assert_allclose(SPACE.denormalize(unit), actions, atol=1e-12)
+    np.testing.assert_allclose(unit * (SPACE.high - SPACE.low) + SPACE.low, actions, atol=1e-12)
     np.testing.assert_allclose(SPACE.normalize(SPACE.low), 0.0)
     np.testing.assert_allclose(SPACE.normalize(SPACE.high), 1.0)
 
@@ -95,3 +96,100 @@ def test_probe_radius_in_each_dimensions_units():
     got = LIFT_WORKSPACE.radius_in_units(0.05)
     assert got["position_cm"] == [2.25, 2.5, 1.75]
     assert got["rot6d"] == 0.1 and got["gripper"] == 0.1
+
+
+# --- TeleopCommand: validation and wire form ---------------------------------------------------------------
+
+BOUNDS = {"delta_pos": TeleopCommand.MAX_DELTA_POS, "delta_rot": TeleopCommand.MAX_DELTA_ROT}
+
+
+@pytest.mark.parametrize("field", ["delta_pos", "delta_rot"])
+@pytest.mark.parametrize(
+    ("bad", "why"),
+    [
+        ((0.0, 0.0), "have 3 components"),
+        ((0.0, 0.0, 0.0, 0.0), "have 3 components"),
+        ((True, 0.0, 0.0), "be 3 numbers"),
+        ((0.0, "0.1", 0.0), "be 3 numbers"),
+        ((0.0, None, 0.0), "be 3 numbers"),
+        ("abc", "be 3 numbers"),
+        (0.1, "be 3 numbers"),
+        (None, "be 3 numbers"),
+        ((0.0, 10**400, 0.0), "be 3 numbers"),
+    ],
+)
+def test_teleop_command_refuses_a_bad_vector_naming_the_field(field, bad, why):
+    with pytest.raises(ValueError, match=f"TeleopCommand.{field} must {why}"):
+        TeleopCommand(**{field: bad})
+
+
+@pytest.mark.parametrize("bad", [True, False, np.bool_(True), None, "1.0", [1.0], math.nan, math.inf, 10**400])
+def test_teleop_command_refuses_a_bad_gripper_naming_it(bad):
+    with pytest.raises(ValueError, match="TeleopCommand.gripper must be"):
+        TeleopCommand(gripper=bad)
+
+
+def test_teleop_command_stores_plain_floats_from_any_real_numbers():
+    cmd = TeleopCommand(np.array([0.01, 0.0, -0.02]), (0, np.int64(1), np.float32(0.5)), np.float64(1.0))
+    assert cmd == TeleopCommand((0.01, 0.0, -0.02), (0.0, 1.0, 0.5), 1.0)
+    for v in (*cmd.delta_pos, *cmd.delta_rot, cmd.gripper):
+        assert type(v) is float
+
+
+@pytest.mark.parametrize("field", ["delta_pos", "delta_rot"])
+def test_an_operators_command_is_bounded_per_component_naming_the_field(field):
+    bound = BOUNDS[field]
+    edge = TeleopCommand.checked(**{field: (bound, -bound, 0.0)}, gripper=1.0)  # the bounds are inclusive
+    assert getattr(edge, field) == (bound, -bound, 0.0)
+    over = (0.0, 0.0, -math.nextafter(bound, math.inf))
+    with pytest.raises(ValueError, match=f"TeleopCommand.{field}: each component must be within ±{bound}"):
+        TeleopCommand.checked(**{field: over})
+    with pytest.raises(ValueError, match=f"TeleopCommand.{field}: each component"):
+        TeleopCommand.from_dict({"delta_pos": (0, 0, 0), "gripper": 0.0} | {field: over})
+    with pytest.raises(ValueError, match=f"TeleopCommand.{field}: each component"):
+        TeleopCommand(**{field: over}).check_bounds()
+    assert getattr(TeleopCommand(**{field: over}), field) == over  # a composed command: clamped when applied
+
+
+@pytest.mark.parametrize("gripper", [-1.5, 1.0000001, 7.0])
+def test_an_operators_gripper_is_within_its_range(gripper):
+    with pytest.raises(ValueError, match=r"TeleopCommand.gripper must be within \[-1.0, 1.0\]"):
+        TeleopCommand.checked(gripper=gripper)
+    assert TeleopCommand.checked(gripper=-1.0).gripper == -1.0 and TeleopCommand.checked(gripper=1).gripper == 1.0
+
+
+@pytest.mark.parametrize(
+    "cmd",
+    [
+        TeleopCommand(),
+        TeleopCommand((0.1 + 0.2, -0.0, 5e-324), (1 / 3, -0.5, 0.49999999999999994), 0.7000000000000001),
+        TeleopCommand(np.float32([0.01, -0.02, 0.03]), (0.0, 0.0, float(np.float32(0.1))), -1.0),
+        TeleopCommand((0.25, 0.0, 0.0), (0.0, 0.0, 3.0), 1.0),  # composed: over an operator's bounds
+    ],
+)
+def test_teleop_command_round_trips_exactly_through_its_wire_form(cmd):
+    data = cmd.to_dict()
+    assert set(data) == {"delta_pos", "delta_rot", "gripper"}
+    assert all(type(v) is float for v in (*data["delta_pos"], *data["delta_rot"], data["gripper"]))
+    assert json.loads(json.dumps(data)) == data
+    back = TeleopCommand.from_dict(data, bounded=False)
+    assert back == cmd and back.to_dict() == data
+    assert math.copysign(1.0, back.delta_pos[1]) == math.copysign(1.0, cmd.delta_pos[1])  # -0.0 stays -0.0
+    assert TeleopCommand.from_json(cmd.to_json(), bounded=False) == cmd
+
+
+def test_from_dict_reads_the_apis_body_and_nothing_else():
+    body = {"delta_pos": [0.0, 0.0, 0.01], "gripper": -1}
+    assert TeleopCommand.from_dict(body) == TeleopCommand((0.0, 0.0, 0.01), (0.0, 0.0, 0.0), -1.0)
+    with pytest.raises(ValueError, match="TeleopCommand.gripper is missing"):
+        TeleopCommand.from_dict({"delta_pos": [0, 0, 0]})
+    with pytest.raises(ValueError, match="TeleopCommand.delta_pos is missing"):
+        TeleopCommand.from_dict({"gripper": 1.0})
+    with pytest.raises(ValueError, match=r"unknown fields \['speed'\]"):
+        TeleopCommand.from_dict(body | {"speed": 1})
+    with pytest.raises(ValueError, match="JSON object"):
+        TeleopCommand.from_dict([0, 0, 0])
+    with pytest.raises(ValueError, match="TeleopCommand.delta_pos must be finite"):
+        TeleopCommand.from_json('{"delta_pos": [NaN, 0, 0], "gripper": 1}')
+    with pytest.raises(ValueError, match="not valid JSON"):
+        TeleopCommand.from_json("{")

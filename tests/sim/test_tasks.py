@@ -192,6 +192,23 @@ def test_lift_observes_the_objects_bounding_box(task_cache):
         assert other.max() > 0.09, f"{name} extent {other}"
 
 
+@pytest.mark.parametrize("name", TASK_IDS)
+def test_each_task_states_its_goal_from_what_the_console_receives(task_cache, name):
+    """``Task.goal`` reads only the frame's scene (JSON values, what the service sends): a task built
+    by ``make_task`` and never reset states it as the stepped one does."""
+    task = task_cache(name)
+    task.reset(seed=2)
+    scene = RobotFrame.from_task(task).goal
+    goal = make_task(name).goal(scene)
+    assert goal == task.goal(scene) and goal.text.startswith(task.description.split()[0])
+    if name == "open-drawer":  # seed 2: the left drawer, which the robot does not know
+        assert goal.text == "Open the **left** drawer (the robot does not know which)."
+    elif name == "cup-stack":  # the cups start apart: the red one is in view
+        assert goal.text == f"{task.description}."
+    else:
+        assert goal.text.startswith(f"{task.description}; grasp across its bar (yaw ")
+
+
 @pytest.mark.parametrize("name", ["lift-cube", "cup-stack", "open-drawer"])
 def test_experts_never_pause_in_free_space_above_the_object(task_cache, name):
     """With an observation history of 1 a pause above the object looks the same at every step; the

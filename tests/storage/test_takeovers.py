@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 
 from policy.finetune import FinetuneConfig
-from storage.segments import SegmentWriter
+from storage import keys
+from storage.mcap_io import JsonMcapWriter
+from storage.segments import SCHEMAS, SegmentStep, SegmentWriter, read_segment, recover_segment
 from storage.takeovers import TakeoverSelection, load_takeovers
 
 
@@ -34,6 +36,25 @@ def test_successful_only_keeps_takeovers_of_episodes_that_succeeded():
     assert "has not ended" in keep.why_excluded(None)
     assert TakeoverSelection().why_excluded("faulted") is None  # by default every takeover is used
     assert TakeoverSelection(tail=4).steps(10) == slice(6, 10) and TakeoverSelection(tail=4).steps(3) == slice(0, 3)
+
+
+def test_a_segment_reads_as_typed_steps_and_a_malformed_step_is_named(tmp_path):
+    step = read_segment(_segment(tmp_path / "a.mcap", 2)).steps[1]
+    assert isinstance(step, SegmentStep) and step.t == 1 and step.observation == [1.0] * 26
+    assert step.position == [0.0, 0.0, 0.9] and step.quaternion == [0, 0, 0, 1.0] and step.command == {}
+    assert step.uncertainty is None and step.shadow == {} and len(step.action) == len(step.action_normalized) == 10
+    # a step without a position: the fine-tuning reader names it; recovery still counts it
+    mcap = JsonMcapWriter(tmp_path / "bad.mcap", SCHEMAS, chunk_size=1024)
+    for topic, schema, doc in (
+        (keys.TOPIC_TAKEOVER, keys.SCHEMA_TAKEOVER, {"robot": 0}),
+        (keys.TOPIC_TAKEOVER_STEP, keys.SCHEMA_TAKEOVER_STEP, {"observation": [0.0] * 26, "action": [0.0] * 10}),
+        (keys.TOPIC_TAKEOVER_END, keys.SCHEMA_TAKEOVER_END, {"status": "closed", "ended_by": None, "steps": 1}),
+    ):
+        mcap.add(mcap.channel(topic, schema), 1, doc)
+    mcap.close()
+    out = load_takeovers([tmp_path / "bad.mcap"], obs_dim=26)
+    assert out.skipped == {"bad.mcap": "malformed step (KeyError: 'position')"}
+    assert recover_segment(tmp_path / "bad.mcap") == 1
 
 
 @pytest.mark.parametrize("tail", [0, -2, 2.5, True, "3"])

@@ -21,8 +21,8 @@ BROWSER_TIMEOUT_MS = 90_000  # software WebGL on a loaded 2-core box paints abou
 CONFIG = """\
 data_dir = "{data}"
 control_hz = 10
-trigger_mode = "continuous"
-cooldown_steps = 10
+hand_back = "continuous"
+cooldown = 10
 shadow_signals = ["denoising"]
 lease_seconds = 20
 

@@ -8,11 +8,12 @@ import numpy as np
 
 from policy.normalizer import MinMaxNormalizer
 from policy.uncertainty import UncertaintyResult
-from server.commands import CommandMailbox
-from server.robot import Robot, TimelinePoint
+from server.fleet.commands import CommandMailbox
+from server.fleet.robot import Robot, TimelinePoint
+from sim.registry import make_task
 from sim.spaces import TeleopLimits
 from web.identity import Identity, IdentitySigner
-from web.panels import goal_text, key_map_markdown, timeline_data
+from web.panels import key_map_markdown, timeline_data
 from web.scene import FIELD_LONGEST_M, MODE_COLORS, field_arrows, pose_delta, probe_radii
 from web.viser_internals import message_type
 
@@ -124,8 +125,15 @@ def test_the_timeline_marks_requests_and_changes_of_hands():
 
 
 def test_the_goal_and_the_key_map_read_as_an_operator_needs_them():
-    assert "**left** drawer" in goal_text("Open the intended one of three drawers", {"intended": 2})
-    assert "hidden" in goal_text("Put the green cup in the red one", {"red_visible": False})
+    # each task says its own goal from the frame's scene (its privileged state as JSON), no simulation needed
+    drawer, cups, hook = make_task("open-drawer"), make_task("cup-stack"), make_task("lift-hook")
+    assert drawer.goal({"intended": 2}).text == "Open the **left** drawer (the robot does not know which)."
+    assert drawer.goal({}).text == drawer.description
+    hidden = " The red cup is hidden from the robot's camera."
+    assert cups.goal({"red_visible": False}).text == f"{cups.description}.{hidden}"
+    assert cups.goal({"red_visible": True}).text == f"{cups.description}."
+    bar = "Lift the hook 4 cm off the table; grasp across its bar (yaw -90°)."
+    assert hook.goal({"grasp_yaw": -np.pi / 2}).text == bar
     keys = key_map_markdown()
     assert "W/A/S/D/Q/E" in keys  # left to the camera, and said so
     for key in ("| I / K |", "| J / L |", "| U / O |", "| N / M |", "| G |"):
@@ -184,7 +192,7 @@ def test_the_takeover_list_shows_notes_and_names_as_text_never_as_html():
     assert "&lt;img src=x onerror=alert(1)&gt; **loud** | [link](javascript:alert(2)) a-b second line" in cells[6]
     assert "bad, <strong>discarded</strong>" in rendered  # our own markup still renders
     # a lease holder's name (a token's) is text too
-    from server.assistance import AssistanceRequest
+    from server.fleet.assistance import AssistanceRequest
     from web.panels import queue_row
 
     req = AssistanceRequest(1, 0, 1.0, 0.5, "spread: over", created=0.0, holder="<img src=x onerror=alert(3)>")

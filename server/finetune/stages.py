@@ -5,7 +5,8 @@
 candidate on the same seeds) and ``register`` (under the lease, promoted when the gate passes). Each
 stage records its stage and progress in the job's row and hands what it made to the next ones as a
 small frozen dataclass.
-The runner (``server.finetune_job``) holds the lease around them and records a stage's failure.
+The runner (``server.finetune.job``) holds the lease around them and records a stage's failure; the
+stages are given what they need of it as a ``JobContext`` (``server.finetune.context``).
 
 Before each write that another job could race (a checkpoint, the candidate, the registration, the
 promotion) a stage checks the lease (``Heartbeat.check``): a job that lost it writes nothing more.
@@ -40,18 +41,18 @@ from policy.finetune import (
 from server import lease as leases
 from server import registry
 from server.db import FinetuneJob, PolicyVersion, utcnow
-from server.finetune_plan import JobRequest, Plan, select_segments
-from server.recording import resolve
+from server.finetune.context import JobContext
+from server.finetune.plan import JobRequest, Plan, select_segments
 from sim.demos import DemoRecipe, ensure_demos
 from storage import keys, paths
 from storage.dataset import DatasetConfig, load_dataset
+from storage.paths import in_store
 from storage.takeovers import load_takeovers
 
 if TYPE_CHECKING:
     import numpy as np
 
     from policy.diffusion_policy import DiffusionPolicy
-    from server.finetune_job import FinetuneRunner
 
 
 def update_job(sessions: sessionmaker, job_id: int, **values) -> None:
@@ -134,8 +135,8 @@ def _record_pretraining(info: dict, folder: Path, progress: bool, report: Callab
 
 @dataclass(frozen=True)
 class JobRun:
-    """One job: its row, plan, request and lease, the runner's store and reporting, and what ``prepare``
-    set up. Each stage is a method; what it makes, the next stages are given."""
+    """One job: its row, plan, request and lease, the runner's store and reporting (its ``JobContext``), and
+    what ``prepare`` set up. Each stage is a method; what it makes, the next stages are given."""
 
     id: int
     plan: Plan
@@ -160,13 +161,11 @@ class JobRun:
         update_job(self.sessions, self.id, **values)
 
     @classmethod
-    def prepare(
-        cls, runner: FinetuneRunner, job_id: int, plan: Plan, request: JobRequest, beat: leases.Heartbeat
-    ) -> JobRun:
+    def prepare(cls, ctx: JobContext, job_id: int, plan: Plan, request: JobRequest, beat: leases.Heartbeat) -> JobRun:
         """The job's work folder, its parent policy loaded, and the folder of the parent's pretraining
         data: ``--pretrain-data``, else the one its config.json records (a relative one is relative to
         the data root, ``storage.paths``)."""
-        work = runner.data_dir / "finetune" / f"job-{job_id}"
+        work = ctx.data_dir / "finetune" / f"job-{job_id}"
         work.mkdir(parents=True, exist_ok=True)
         parent_dir = registry.folder(plan.parent)
         parent, info = load_policy(parent_dir)
@@ -177,11 +176,11 @@ class JobRun:
             plan=plan,
             request=request,
             beat=beat,
-            sessions=runner.sessions,
-            data_dir=runner.data_dir,
-            eval_tasks=runner.eval_tasks,
-            progress=runner.progress,
-            report=runner.report,
+            sessions=ctx.sessions,
+            data_dir=ctx.data_dir,
+            eval_tasks=ctx.eval_tasks,
+            progress=ctx.progress,
+            report=ctx.report,
             work=work,
             parent_dir=parent_dir,
             parent=parent,
@@ -212,7 +211,7 @@ class JobRun:
                 self.report(f"job {self.id}: left out segment {name}: {why}")
             for seg in waiting:
                 self.report(f"job {self.id}: segment {Path(seg.path).name} waits for its episode to end")
-            takeovers = load_takeovers([resolve(self.data_dir, s.path) for s in selected], pc.obs_dim, cfg.selection)
+            takeovers = load_takeovers([in_store(self.data_dir, s.path) for s in selected], pc.obs_dim, cfg.selection)
             for name, why in takeovers.skipped.items():
                 self.report(f"job {self.id}: skipped segment {name}: {why}")
             fresh = takeovers.arrays(pc.obs_horizon, pc.action_horizon)
@@ -347,7 +346,7 @@ class JobRun:
         data, parent_dir = self.pretrain_folder, self.parent_dir
         parent_cal = load_calibration(parent_dir) or {}
         ucfg = UncertaintyConfig(**parent_cal["uncertainty"]) if parent_cal.get("uncertainty") else None
-        record = calibrate(child, info, data, self.cfg.quantile, ucfg, progress=self.progress)
+        record = calibrate(child, info, data, self.cfg.quantile, ucfg, progress=self.progress).to_dict()
         save_calibration(out, record)
         carried, dropped, fitted = [], {}, {}
         cfg, (train_task, targets) = self.cfg, self._tasks(job_data)

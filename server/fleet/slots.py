@@ -15,6 +15,7 @@ from policy.checkpoint import CheckpointError, load_calibration, load_policy
 from policy.controller import Controller, ControllerConfig
 from policy.devices import prepare_for_serving
 from policy.diffusion_policy import DiffusionPolicy
+from policy.hand_back import HAND_BACK_FIELDS
 from policy.signals import SignalError, load_signal
 from server.errors import ServiceError
 from server.inference import make_inference
@@ -45,10 +46,7 @@ class PolicySlot:
 
 def controller_config(settings: Settings) -> ControllerConfig:
     return ControllerConfig(
-        hand_back=settings.trigger_mode,
-        budget=settings.budget_steps,
-        return_after=settings.auto_return_steps,
-        cooldown=settings.cooldown_steps,
+        **{name: getattr(settings, name) for name in HAND_BACK_FIELDS},  # one vocabulary: no translation
         watchdog=settings.watchdog,
         assistance=settings.assistance,
         seed=settings.seed,

@@ -26,9 +26,9 @@ from policy.checkpoint import CheckpointError, read_info
 from server import registry
 from server.db import PolicyVersion
 from server.errors import ServiceError
-from server.robot import Robot
+from server.fleet.robot import Robot
+from server.fleet.slots import PolicySlot, load_slot
 from server.settings import Settings
-from server.slots import PolicySlot, load_slot
 from sim.registry import make_task
 
 log = logging.getLogger("hitl.fleet")

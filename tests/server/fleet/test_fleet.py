@@ -1,6 +1,7 @@
-"""The fleet runtime on in-process workers and a kinematic stand-in task: fast, no uvicorn, no sleeps.
+"""The fleet on in-process workers and a kinematic stand-in task: fast, no uvicorn, no sleeps.
 Ticks are driven by hand, so every assertion is about one known sequence of ticks."""
 
+from dataclasses import FrozenInstanceError
 from datetime import UTC, datetime
 
 import numpy as np
@@ -49,8 +50,7 @@ def _fleet(tmp_path, threshold=-1.0, horizon=1000, count=1, workers=None, succes
         return made[-1]
 
     fleet = Fleet(s, session_factory(make_engine(s.db_url)), workers or factory)
-    for r in fleet.robots.values():
-        fleet._spawn(r)  # noqa: SLF001 - start the workers without the loop thread: ticks by hand
+    fleet.spawn_workers()  # start the workers without the loop thread: ticks by hand
     return fleet, made
 
 
@@ -88,7 +88,7 @@ def test_commands_between_ticks_are_applied_once_in_order_or_refused(tmp_path):
 
 
 def test_budgeted_takeover_hands_back_and_a_lease_expiry_requeues(tmp_path):
-    fleet, workers = _fleet(tmp_path, budget_steps=2, lease_seconds=0.05, count=2)
+    fleet, workers = _fleet(tmp_path, budget=2, lease_seconds=0.05, count=2)
     fleet.tick()
     fleet.claim(0, "op")
     for _ in range(2):
@@ -157,18 +157,19 @@ def test_metrics_aggregate_finished_episodes(tmp_path):
     for _ in range(10):
         fleet.tick()
     m = fleet.metrics()
-    assert m["episodes"] >= 4 and m["success_rate"] == 0.0 and m["robots_by_mode"]["autonomous"] == 2
+    assert m.episodes >= 4 and m.success_rate == 0.0 and m.robots_by_mode["autonomous"] == 2
     # the totals are kept between episodes (no query per metrics request), and renewed at each episode's end
     with fleet.recorder.sessions() as s:  # a row the fleet did not write: not seen until the fleet's next episode ends
         s.add(EpisodeRecord(robot_id=9, task="lift-cube", seed=0, outcome="success", steps=1, assisted_steps=0,
                             assistance_events=0, started_at=datetime.now(UTC)))  # fmt: skip
         s.commit()
-    assert fleet.metrics()["episodes"] == m["episodes"]
-    fleet.recorder.totals()["episodes"] = -1  # a copy: the kept totals are not the caller's to change
+    assert fleet.metrics().episodes == m.episodes
+    with pytest.raises(FrozenInstanceError):  # the kept totals are not the caller's to change
+        fleet.recorder.totals().episodes = -1
     for _ in range(4):
         fleet.tick()
     after = fleet.metrics()
-    assert after["episodes"] >= m["episodes"] + 2 and after["success_rate"] > 0.0  # renewed, with that row
+    assert after.episodes >= m.episodes + 2 and after.success_rate > 0.0  # renewed, with that row
     fleet.stop()
 
 
@@ -176,14 +177,14 @@ def test_metrics_report_the_longest_wait_to_a_claim_and_the_oldest_unclaimed_req
     fleet, _ = _fleet(tmp_path, count=2)
     fleet.tick()  # threshold -1: both robots ask at once
     m = fleet.metrics()
-    assert m["queue_wait_max_s"] is None and m["queue_oldest_unclaimed_s"] >= 0
+    assert m.queue_wait_max_s is None and m.queue_oldest_unclaimed_s >= 0
     fleet.claim(0, "op")
     import time
 
     before = time.monotonic()
     m = fleet.metrics()
-    assert m["queue_wait_max_s"] == fleet.queue.waits[0] >= 0
-    assert m["queue_oldest_unclaimed_s"] >= before - fleet.queue.get(1).created  # robot 1 still waits
+    assert m.queue_wait_max_s == fleet.queue.waits[0] >= 0
+    assert m.queue_oldest_unclaimed_s >= before - fleet.queue.get(1).created  # robot 1 still waits
     fleet.stop()
 
 
@@ -242,7 +243,7 @@ def _episodes(fleet):
 
 
 def test_waiting_does_not_use_up_the_horizon_and_a_timeout_waits_for_the_hand_back(tmp_path):
-    fleet, workers = _fleet(tmp_path, horizon=5, trigger_mode="continuous", auto_return_steps=1000)
+    fleet, workers = _fleet(tmp_path, horizon=5, hand_back="continuous", return_after=1000)
     for _ in range(30):  # asks at once, then waits six horizons' worth of ticks for an operator
         fleet.tick()
     robot = fleet.view(0)
@@ -264,7 +265,7 @@ def test_waiting_does_not_use_up_the_horizon_and_a_timeout_waits_for_the_hand_ba
 
 
 def test_a_takeover_ends_with_the_episode_only_at_success_or_with_the_lease(tmp_path):
-    fleet, _ = _fleet(tmp_path, horizon=3, success_z=1.05, trigger_mode="continuous", auto_return_steps=1000)
+    fleet, _ = _fleet(tmp_path, horizon=3, success_z=1.05, hand_back="continuous", return_after=1000)
     fleet.tick()
     fleet.claim(0, "op")
     for _ in range(5):  # z climbs 1 cm a step from 1.0: past the horizon (3), then at 1.05 success
@@ -278,7 +279,7 @@ def test_a_takeover_ends_with_the_episode_only_at_success_or_with_the_lease(tmp_
     assert _episodes(fleet)[0].outcome == "success"
 
     # a lease that runs out past the horizon: the request goes back to the queue, and the episode ends
-    lapsed, _ = _fleet(tmp_path / "lease", horizon=2, lease_seconds=0.05, trigger_mode="continuous")
+    lapsed, _ = _fleet(tmp_path / "lease", horizon=2, lease_seconds=0.05, hand_back="continuous")
     lapsed.tick()
     lapsed.claim(0, "op")
     for _ in range(3):
@@ -295,7 +296,7 @@ def test_a_takeover_ends_with_the_episode_only_at_success_or_with_the_lease(tmp_
 
 
 def test_a_cooldown_after_the_hand_back_keeps_a_robot_from_flooding_the_queue(tmp_path):
-    fleet, _ = _fleet(tmp_path, budget_steps=2, cooldown_steps=3)  # threshold -1: always wants help
+    fleet, _ = _fleet(tmp_path, budget=2, cooldown=3)  # threshold -1: always wants help
     fleet.tick()
     fleet.claim(0, "op")
     for _ in range(2):
@@ -311,7 +312,7 @@ def test_a_cooldown_after_the_hand_back_keeps_a_robot_from_flooding_the_queue(tm
 
 
 def test_the_watchdog_asks_once_when_an_episode_runs_long(tmp_path):
-    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=10, watchdog=0.5, budget_steps=1, cooldown_steps=0)
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=10, watchdog=0.5, budget=1, cooldown=0)
     modes = []
     for _ in range(6):  # the signal never asks; five policy steps are half the horizon
         fleet.tick()
@@ -330,7 +331,7 @@ def test_the_watchdog_asks_once_when_an_episode_runs_long(tmp_path):
 def test_an_accepted_command_renews_the_lease(tmp_path):
     import time
 
-    fleet, _ = _fleet(tmp_path, lease_seconds=0.3, trigger_mode="continuous")
+    fleet, _ = _fleet(tmp_path, lease_seconds=0.3, hand_back="continuous")
     fleet.tick()
     fleet.claim(0, "op")
     for _ in range(6):  # 0.6 s of driving, two leases' worth, with no heartbeat
@@ -346,7 +347,7 @@ def test_an_accepted_command_renews_the_lease(tmp_path):
 def test_a_worker_that_dies_while_a_step_is_sent_faults_alone_and_the_fleet_runs_on(tmp_path):
     from server.workers import WorkerFault
 
-    fleet, workers = _fleet(tmp_path, threshold=1e9, count=2, cooldown_steps=0)
+    fleet, workers = _fleet(tmp_path, threshold=1e9, count=2, cooldown=0)
     fleet.tick()
 
     def dead(action, hold=False):
@@ -364,7 +365,7 @@ def test_a_worker_that_dies_while_a_step_is_sent_faults_alone_and_the_fleet_runs
 def test_a_lease_that_runs_out_while_paused_ends_that_takeover(tmp_path):
     import time
 
-    fleet, _ = _fleet(tmp_path, lease_seconds=0.05, trigger_mode="continuous")
+    fleet, _ = _fleet(tmp_path, lease_seconds=0.05, hand_back="continuous")
     fleet.tick()
     fleet.claim(0, "alice")
     fleet.command(0, "alice", UP)
@@ -384,7 +385,7 @@ def test_a_lease_that_runs_out_while_paused_ends_that_takeover(tmp_path):
 def test_freeze_idle_steps_a_waiting_or_idle_teleop_robot_only_on_its_operators_commands(tmp_path):
     """With ``freeze_idle`` the scene of a robot that waits for its operator (or for the next command)
     waits too: the asking step's hold is the only hold it gets, so its numbers do not depend on latency."""
-    fleet, workers = _fleet(tmp_path, freeze_idle=True, budget_steps=2, cooldown_steps=0)
+    fleet, workers = _fleet(tmp_path, freeze_idle=True, budget=2, cooldown=0)
     fleet.tick()  # threshold -1: the robot asks at once; that step's hold is sent
     assert fleet.view(0).mode == "waiting" and len(workers[0].actions) == 1
     clock = fleet.view(0).frame.clock
@@ -402,11 +403,11 @@ def test_freeze_idle_steps_a_waiting_or_idle_teleop_robot_only_on_its_operators_
 
 def test_claims_and_releases_never_wait_for_a_tick_in_progress(tmp_path):
     """A tick holds the fleet lock for its whole batch; a claim and a release are decided by the queue
-    at once, shown at once, and applied by the loop at its next tick (``server.handovers``)."""
+    at once, shown at once, and applied by the loop at its next tick (``server.fleet.handovers``)."""
     import threading
     import time
 
-    fleet, workers = _fleet(tmp_path, trigger_mode="continuous", auto_return_steps=1000)
+    fleet, workers = _fleet(tmp_path, hand_back="continuous", return_after=1000)
     fleet.tick()  # threshold -1: the robot asks
     in_tick, done = threading.Event(), threading.Event()
 
@@ -453,7 +454,7 @@ def test_claims_and_releases_never_wait_for_a_tick_in_progress(tmp_path):
 
 
 def test_a_claim_whose_request_ends_before_the_next_tick_changes_nothing(tmp_path):
-    fleet, _ = _fleet(tmp_path, lease_seconds=0.05, trigger_mode="continuous")
+    fleet, _ = _fleet(tmp_path, lease_seconds=0.05, hand_back="continuous")
     fleet.tick()
     fleet.claim(0, "op")
     import time

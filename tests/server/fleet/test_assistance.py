@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from server.assistance import WAIT_SCALE_S, AssistanceQueue, urgency
+from server.fleet.assistance import WAIT_SCALE_S, AssistanceQueue, urgency
 
 LIFT, DRAWER = 0.004, 0.5  # thresholds of two signals on very different scales
 LIFT_SCORE, DRAWER_SCORE = 1100 * LIFT, 1.3 * DRAWER  # 1,100x and 1.3x their thresholds

@@ -3,7 +3,7 @@
 Bad input is refused before anything is written: a request that does not validate (``JobRequest``), a
 reference that names no version, a lineage with no closed or recovered takeover segments. Planning
 reads the registry and the segment rows and writes nothing, so the API can check a request (and
-answer 422) before it queues a job; ``server.finetune_job`` runs the plans.
+answer 422) before it queues a job; ``server.finetune.job`` runs the plans.
 """
 
 from __future__ import annotations

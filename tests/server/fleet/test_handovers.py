@@ -1,6 +1,6 @@
 """The handover mailbox: claims and releases in order, and the mode they will give a robot."""
 
-from server.handovers import Handover, HandoverMailbox
+from server.fleet.handovers import Handover, HandoverMailbox
 
 
 def test_the_shown_mode_follows_the_pending_handovers_in_order():

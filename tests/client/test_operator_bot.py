@@ -4,10 +4,10 @@ gives up where the in-process operator's episodes stop."""
 import httpx
 import numpy as np
 
+from client.operator_bot import OperatorBot, overtime
 from policy.lockstep import OVERTIME
 from server.auth import create_token
 from server.db import make_engine, migrate, session_factory
-from server.operator_bot import OperatorBot, overtime
 from server.settings import RobotGroup, Settings
 from storage.segments import read_segment
 from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
@@ -21,8 +21,8 @@ def test_the_bot_hands_back_once_the_object_is_held(tmp_path):
         data_dir=tmp_path / "var",
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
-        trigger_mode="continuous",  # only the operator hands back
-        cooldown_steps=100_000,  # and the robot does not ask again this episode
+        hand_back="continuous",  # only the operator hands back
+        cooldown=100_000,  # and the robot does not ask again this episode
         control_hz=40,
     )
     migrate(settings.db_url)
@@ -51,7 +51,7 @@ def test_the_bot_hands_back_once_the_object_is_held(tmp_path):
         obs, _ = segment.labels()
     assert len(segment.steps) == bot.commands
     # it gave the robot back holding the cube: gripper closed on the last steps, the cube on its way up
-    assert segment.steps[-1]["command"]["gripper"] > 0
+    assert segment.steps[-1].command["gripper"] > 0
     assert 0.004 < obs[-1, OBJECT_Z] - obs[0, OBJECT_Z] < 0.02
     assert np.isfinite(obs).all()
 

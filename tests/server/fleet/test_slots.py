@@ -1,8 +1,8 @@
 import json
 import logging
 
+from server.fleet.slots import load_slot
 from server.settings import RobotGroup, Settings
-from server.slots import load_slot
 from tests.helpers import tiny_policy_folder
 
 

@@ -1,24 +1,25 @@
-"""A fleet robot: its record in the runtime (``Robot``) and the copy the API reads (``RobotView``)."""
+"""A fleet robot: its record in the fleet (``Robot``) and the copy the API reads (``RobotView``).
+
+``Robot`` holds what the fleet knows of one robot: its worker, policy slot, episode, counters and mode.
+The mode is written in one place, ``Robot.set_mode`` (``pause`` and ``resume`` for an admin's pause):
+a paused robot stays paused through the transitions the loop makes meanwhile, and resumes into the
+mode they left it in. The recorder's per-robot state (open files, the step waiting for its outcome)
+is the recorder's own (``server.fleet.recording``).
+"""
 
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field, fields, replace
-from typing import TYPE_CHECKING
 
 from policy.uncertainty import UncertaintyResult
-from server.commands import CommandMailbox
-from server.handovers import HandoverMailbox
-from server.slots import PolicySlot
+from server.fleet.commands import CommandMailbox
+from server.fleet.handovers import HandoverMailbox
+from server.fleet.modes import FleetMode
+from server.fleet.slots import PolicySlot
 from server.workers import RobotWorker
 from sim.frame import RobotFrame
-from storage.episodes import EpisodeWriter
-from storage.segments import SegmentWriter
 
-if TYPE_CHECKING:  # server.recording imports this module
-    from server.recording import PendingStep
-
-MODES = ("autonomous", "waiting", "teleop", "paused", "done", "faulted")
 U_HISTORY = 300
 
 
@@ -31,7 +32,7 @@ class TimelinePoint:
     ``Robot.record`` from the modes)."""
 
     t: int
-    mode: str
+    mode: FleetMode
     score: float | None
     U: float | None
     asked: bool = False
@@ -46,7 +47,7 @@ class RobotView:
     task: str
     slot: PolicySlot
     seed: int
-    mode: str
+    mode: FleetMode
     episode_id: int | None
     steps: int
     u_history: tuple
@@ -71,7 +72,6 @@ class Robot:
     seed: int
     commands: CommandMailbox
     worker: RobotWorker | None = None
-    mode: str = "autonomous"
     frame: RobotFrame | None = None
     fresh: bool = False  # ``frame`` arrived since the robot's last step
     episode_id: int | None = None
@@ -89,16 +89,39 @@ class Robot:
     restart_at: float | None = None
     fault: str | None = None
     fault_pending: str | None = None  # a worker fault seen while the controller was stepping: applied after it
-    paused_from: str | None = None
     latencies: deque = field(default_factory=lambda: deque(maxlen=1000))  # command arrival -> sent (s)
     action_periods: deque = field(default_factory=lambda: deque(maxlen=1000))  # seconds between actions sent
     last_sent: float | None = None
-    segment: SegmentWriter | None = None
-    segment_id: int | None = None
-    recorder: EpisodeWriter | None = None  # whole-episode recording (settings.record_episodes)
-    pending_step: PendingStep | None = None  # the step sent, written once its outcome arrives
-    view: RobotView | None = None  # what readers see (``Fleet._publish``)
+    view: RobotView | None = None  # what readers see (``publish``)
     handovers: HandoverMailbox = field(default_factory=HandoverMailbox)  # claims, releases for the next tick
+    _mode: FleetMode = field(default=FleetMode.AUTONOMOUS, init=False)
+    _paused_from: FleetMode | None = field(default=None, init=False)  # the mode ``resume`` returns to
+
+    @property
+    def mode(self) -> FleetMode:
+        return self._mode
+
+    @property
+    def paused_from(self) -> FleetMode | None:
+        """The mode a paused robot resumes into (None when not paused)."""
+        return self._paused_from
+
+    def set_mode(self, mode: FleetMode) -> None:
+        """The robot's mode after a transition of the loop or an operator. A paused robot stays paused:
+        the transition becomes the mode it resumes into. A fault ends a pause."""
+        if self._mode == FleetMode.PAUSED and mode != FleetMode.FAULTED:
+            self._paused_from = mode
+        else:
+            self._mode, self._paused_from = FleetMode(mode), None
+
+    def pause(self) -> None:
+        """An admin's pause: not stepped until ``resume``."""
+        if self._mode != FleetMode.PAUSED:
+            self._paused_from, self._mode = self._mode, FleetMode.PAUSED
+
+    def resume(self, mode: FleetMode) -> None:
+        """Ends a pause (or overrides any mode: a reset), into ``mode``."""
+        self._mode, self._paused_from = FleetMode(mode), None
 
     def publish(self) -> None:
         """A consistent copy of what the API shows, so readers never wait for a tick in progress."""
@@ -110,9 +133,9 @@ class Robot:
         takes the new mode and keeps the scores it had when the new point has none."""
         last = self.timeline[-1] if self.timeline else None
         before = last.mode if last is not None else point.mode
-        steady = "paused" in (before, point.mode)  # pausing and resuming change nothing for the plot
-        asked = not steady and point.mode == "waiting" and before != "waiting"
-        handed = not steady and (point.mode == "teleop") != (before == "teleop")
+        steady = FleetMode.PAUSED in (before, point.mode)  # pausing and resuming change nothing for the plot
+        asked = not steady and point.mode == FleetMode.WAITING and before != FleetMode.WAITING
+        handed = not steady and (point.mode == FleetMode.TELEOP) != (before == FleetMode.TELEOP)
         if last is None or last.t != point.t:
             self.timeline.append(replace(point, asked=asked, handed=handed))
             return

@@ -6,7 +6,7 @@ from datetime import datetime, timedelta, timezone
 import pytest
 from pydantic import ValidationError
 
-from server.scheduler import Scheduler, parse_cron
+from server.finetune.scheduler import Scheduler, parse_cron
 from server.settings import Settings
 
 TZ = timezone(timedelta(hours=1))

@@ -8,10 +8,11 @@ all. A job that is interrupted (killed, crashed, lease lost) leaves its row ``ru
 ``interrupted`` and its training state in ``work_dir``; the next run for the same lineage, parent
 and data resumes it from its last checkpoint.
 
-Bad input is refused before anything is written (``server.finetune_plan``: the request, and the plan
+Bad input is refused before anything is written (``server.finetune.plan``: the request, and the plan
 that finds each job's parent version and takeover segments). This module runs the plans: the lease,
 the job's row (opened, resumed or superseded; failed or interrupted when a stage raises), and the
-job's seven stages in order (``server.finetune_stages``).
+job's seven stages in order (``server.finetune.stages``), given what they need of the runner
+(``server.finetune.context.JobContext``).
 """
 
 from __future__ import annotations
@@ -32,8 +33,9 @@ from sqlalchemy.orm import sessionmaker
 from server import lease as leases
 from server.db import FinetuneJob, utcnow
 from server.errors import ServiceError
-from server.finetune_plan import JobRequest, Plan, parse_since, plan_jobs, select_segments
-from server.finetune_stages import JobRun, update_job
+from server.finetune.context import JobContext
+from server.finetune.plan import JobRequest, Plan, parse_since, plan_jobs, select_segments
+from server.finetune.stages import JobRun, update_job
 
 __all__ = ["FinetuneRunner", "JobBusy", "JobRequest", "Plan", "parse_since"]
 
@@ -63,8 +65,13 @@ class FinetuneRunner:
         self.report = report
         self.owner = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
 
+    @property
+    def context(self) -> JobContext:
+        """What the job's stages are given of this runner."""
+        return JobContext(self.sessions, self.data_dir, self.eval_tasks, self.progress, self.report)
+
     def plan(self, request: JobRequest) -> list[Plan]:
-        """The jobs a request would run (``server.finetune_plan.plan_jobs``): validation only, nothing written."""
+        """The jobs a request would run (``server.finetune.plan.plan_jobs``): validation only, nothing written."""
         return plan_jobs(self.sessions, request)
 
     # -- running -------------------------------------------------------------------------------------------
@@ -181,9 +188,9 @@ class FinetuneRunner:
         return summary
 
     def _work(self, job_id: int, plan: Plan, request: JobRequest, beat: leases.Heartbeat) -> dict:
-        """One job's seven stages (``server.finetune_stages``), in order; returns its summary, also
+        """One job's seven stages (``server.finetune.stages``), in order; returns its summary, also
         reported as one JSON line."""
-        job = JobRun.prepare(self, job_id, plan, request, beat)
+        job = JobRun.prepare(self.context, job_id, plan, request, beat)
         data = job.collect_data()
         trained = job.train(data)
         candidate = job.write_candidate(data, trained)

@@ -1,7 +1,7 @@
 """A robot's timeline: one point per clock step; holding while waiting keeps the point it asked at."""
 
-from server.commands import CommandMailbox
-from server.robot import Robot, TimelinePoint
+from server.fleet.commands import CommandMailbox
+from server.fleet.robot import Robot, TimelinePoint
 from sim.spaces import TeleopLimits
 from tests.helpers import tiny_policy  # noqa: F401 - the package's helpers import torch once
 

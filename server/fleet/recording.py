@@ -1,8 +1,14 @@
-"""What the fleet writes: episode rows, takeover segments (MCAP + row) and, when asked, whole
-episodes as MCAP files; and ``recover``, which puts right what a crash left open.
+"""What the fleet writes: episode rows, takeovers (MCAP + row: the stored name is "segment") and, when
+asked, whole episodes as MCAP files; and ``recover``, which puts right what a crash left open.
 
-File paths are stored relative to the service's ``data_dir`` and resolved against it at runtime
-(``resolve``), so the data folder can move and recovery does not depend on the working directory.
+The recorder owns its per-robot state (``_Recording``: the open episode file, the step waiting for its
+outcome, the open takeover): the fleet tells it what happened to a robot, and it keeps what it needs.
+A step's record is made once, when the controller has decided it (``step_taken``), and written when
+the robot's next frame brings its outcome (``frame_arrived``: success).
+
+File paths are stored relative to the service's ``data_dir`` (``storage.paths.store_relative``) and
+opened against it (``storage.paths.in_store``), so the data folder can move and recovery does not
+depend on the working directory.
 """
 
 from __future__ import annotations
@@ -18,27 +24,53 @@ from sqlalchemy import case, func, select
 from sqlalchemy.orm import sessionmaker
 
 from policy.controller import RobotStep
-from server.db import EpisodeRecord, SegmentRecord
-from server.robot import Robot
+from server.db import FINISHED, EpisodeRecord, SegmentRecord
+from server.fleet.robot import Robot
 from sim.frame import RobotFrame
 from sim.registry import make_task
 from sim.spaces import ACTION_LABELS
 from storage import keys
 from storage.episodes import EpisodeReadError, EpisodeWriter, recover_episode
+from storage.paths import in_store, store_relative
 from storage.segments import SegmentReadError, SegmentWriter, recover_segment
 
 log = logging.getLogger("hitl.recording")
-FINISHED = ("success", "timeout")  # episodes that ended on their own
 
 
-def resolve(data_dir: Path, stored: str) -> Path:
-    """A file path as stored in the database: relative to ``data_dir`` (absolute paths, as older
-    versions stored them, are kept as they are)."""
-    return Path(data_dir).resolve() / stored
+@dataclass(frozen=True)
+class EpisodeTotals:
+    """The episodes that ended on their own (``db.FINISHED``), summed."""
+
+    episodes: int = 0
+    successes: int = 0
+    assisted_steps: int = 0
+    events: int = 0
 
 
-def _stored(data_dir: Path, path: Path) -> str:
-    return str(Path(path).relative_to(Path(data_dir).resolve()))
+@dataclass
+class PendingStep:
+    """A step sent and not yet written: its outcome (success) comes with the next frame."""
+
+    t: int
+    obs: np.ndarray
+    action: np.ndarray
+    pos: np.ndarray
+    quat: np.ndarray
+    gripper: float
+    source: str
+    bodies: dict
+    extras: dict = field(default_factory=dict)  # ``keys.STEP_EXTRAS``
+
+
+@dataclass
+class _Recording:
+    """One robot's open files: its whole-episode file and the step waiting for its outcome
+    (``record_episodes``), and its takeover in progress with its row's id."""
+
+    episode: EpisodeWriter | None = None
+    pending: PendingStep | None = None
+    takeover: SegmentWriter | None = None
+    takeover_id: int | None = None
 
 
 class Recorder:
@@ -57,8 +89,12 @@ class Recorder:
         self.data_dir = Path(data_dir).resolve()
         self.record_episodes = record_episodes
         self.segment_flush_seconds, self.segment_fsync = segment_flush_seconds, segment_fsync
-        self._totals: dict | None = None  # ``totals()`` until the next episode row ends
+        self._robots: dict[int, _Recording] = {}
+        self._totals: EpisodeTotals | None = None  # ``totals()`` until the next episode row ends
         self._ended = 0  # episode rows ended by this recorder: a ``totals()`` computed across one is not kept
+
+    def _of(self, robot: Robot) -> _Recording:
+        return self._robots.setdefault(robot.id, _Recording())
 
     # -- episode rows ---------------------------------------------------------------------------------
     def open_episode(self, robot: Robot) -> int:
@@ -83,12 +119,12 @@ class Recorder:
                 self._ended += 1
                 self._totals = None
 
-    def totals(self) -> dict:
+    def totals(self) -> EpisodeTotals:
         """Aggregates over the episodes that ended on their own (one query, no rows loaded). The fleet is
         the only writer of its episode rows, so the answer is kept until its next episode ends: a
         monitoring client polling the fleet's metrics costs no query between episodes."""
         if (kept := self._totals) is not None:
-            return dict(kept)
+            return kept
         ended = self._ended
         with self.sessions() as s:
             n, success, assisted, events = s.execute(
@@ -99,22 +135,23 @@ class Recorder:
                     func.coalesce(func.sum(EpisodeRecord.assistance_events), 0),
                 ).where(EpisodeRecord.outcome.in_(FINISHED))
             ).one()
-        out = {"episodes": int(n), "successes": int(success), "assisted_steps": int(assisted), "events": int(events)}
+        out = EpisodeTotals(int(n), int(success), int(assisted), int(events))
         if ended == self._ended:  # no episode ended while it was computed
             self._totals = out
-        return dict(out)
+        return out
 
     # -- whole episodes ---------------------------------------------------------------------------------
     def frame_arrived(self, robot: Robot, frame: RobotFrame) -> None:
-        """Writes the step sent last with the success that followed it; opens the file at a reset."""
+        """Writes the step taken last with the success that followed it; opens the file at a reset."""
         if not self.record_episodes:
             return
-        if (p := robot.pending_step) is not None and robot.recorder is not None:
-            robot.recorder.write_step(
+        rec = self._of(robot)
+        if (p := rec.pending) is not None and rec.episode is not None:
+            rec.episode.write_step(
                 p.t, p.obs, p.action, p.pos, p.quat, p.gripper, frame.success, p.source, p.bodies, p.extras
             )
-        robot.pending_step = None
-        if frame.t == 0 and not frame.done and robot.recorder is None:
+        rec.pending = None
+        if frame.t == 0 and not frame.done and rec.episode is None:
             path = self.data_dir / "episodes" / f"robot{robot.id:03d}_ep{robot.episode_id:06d}.mcap"
             task = make_task(robot.task)  # cheap: names and specs only
             meta = {
@@ -129,53 +166,56 @@ class Recorder:
                 "action_labels": list(ACTION_LABELS),
                 "source": "fleet",
             }
-            robot.recorder = EpisodeWriter(path, meta, object_names=list(frame.bodies))
+            rec.episode = EpisodeWriter(path, meta, object_names=list(frame.bodies))
             with self.sessions() as s:
                 row = s.get(EpisodeRecord, robot.episode_id)
                 if row is not None:
-                    row.path = _stored(self.data_dir, path)
+                    row.path = store_relative(self.data_dir, path)
                     s.commit()
 
-    def action_sent(self, robot: Robot, action: np.ndarray, source: str) -> None:
-        if robot.recorder is not None and robot.frame is not None:
-            f = robot.frame
-            extras = {keys.STEP_POLICY_VERSION: robot.slot.version}
-            robot.pending_step = PendingStep(
-                f.t, f.obs, np.asarray(action, np.float64), f.pos, f.quat, f.gripper, source, f.bodies, extras
-            )
-
-    def step_decided(self, robot: Robot, step: RobotStep) -> None:
-        """Adds what the controller decided about the step just sent to its record: the asking signal's
-        score and threshold, and on an operator step the command and the takeover it belongs to."""
-        if robot.pending_step is None:
+    def step_taken(self, robot: Robot, step: RobotStep) -> None:
+        """The step the robot was just sent, with what the controller decided about it: the asking
+        signal's score and threshold, and on an operator step the command and the takeover it belongs
+        to. Written when its outcome arrives (``frame_arrived``)."""
+        rec = self._of(robot)
+        if rec.episode is None or robot.frame is None:
             return
-        extras = robot.pending_step.extras
-        controller = robot.slot.controller
+        f, controller = robot.frame, robot.slot.controller
+        extras: dict = {keys.STEP_POLICY_VERSION: robot.slot.version}
         asking = controller.asking
         if asking is not None and asking in step.scores:
             extras[keys.STEP_SCORE] = float(step.scores[asking])
             extras[keys.STEP_THRESHOLD] = float(controller.signals[asking].threshold)
         if step.command is not None and step.source == keys.SOURCE_OPERATOR:
-            cmd = step.command
-            extras[keys.STEP_COMMAND] = {
-                "delta_pos": [float(v) for v in cmd.delta_pos],
-                "delta_rot": [float(v) for v in cmd.delta_rot],
-                "gripper": None if cmd.gripper is None else float(cmd.gripper),
-            }
-            if robot.segment_id is not None:
-                extras[keys.STEP_TAKEOVER] = robot.segment_id
+            extras[keys.STEP_COMMAND] = step.command.to_dict()
+            if rec.takeover_id is not None:
+                extras[keys.STEP_TAKEOVER] = rec.takeover_id
+        action = np.asarray(step.action, np.float64)
+        rec.pending = PendingStep(f.t, f.obs, action, f.pos, f.quat, f.gripper, step.source, f.bodies, extras)
 
     def close_episode_file(self, robot: Robot, success: bool | None, steps: int, reason: str) -> None:
-        rec, robot.recorder, robot.pending_step = robot.recorder, None, None
-        if rec is None:
+        rec = self._of(robot)
+        writer, rec.episode, rec.pending = rec.episode, None, None
+        if writer is None:
             return
         if success is None:
-            rec.close()  # unfinished: readable with recover=True
+            writer.close()  # unfinished: readable with recover=True
         else:
-            rec.finish(success, steps, reason)
+            writer.finish(success, steps, reason)
 
-    # -- takeover segments ------------------------------------------------------------------------------
-    def open_segment(self, robot: Robot, operator: str, reason: str) -> None:
+    # -- takeovers (stored as segments) -----------------------------------------------------------------
+    def takeover_operator(self, robot: Robot) -> str | None:
+        """Who the robot's open takeover records as its operator (None: no takeover open)."""
+        writer = self._of(robot).takeover
+        return None if writer is None else writer.meta.get("operator")
+
+    def flush_takeover(self, robot: Robot) -> None:
+        """Nothing of the open takeover older than ``segment_flush_seconds`` stays only in memory."""
+        if (writer := self._of(robot).takeover) is not None:
+            writer.maybe_flush()
+
+    def open_takeover(self, robot: Robot, operator: str, reason: str) -> None:
+        rec = self._of(robot)
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%f")
         path = self.data_dir / "segments" / f"robot{robot.id:03d}_ep{robot.episode_id}_{stamp}.mcap"
         meta = {
@@ -190,7 +230,7 @@ class Recorder:
             "signal": (asking := robot.slot.controller.asking),
             "threshold": None if asking is None else float(robot.slot.controller.signals[asking].threshold),
         }
-        robot.segment = SegmentWriter(path, meta, self.segment_flush_seconds, self.segment_fsync)
+        rec.takeover = SegmentWriter(path, meta, self.segment_flush_seconds, self.segment_fsync)
         with self.sessions() as s:
             row = SegmentRecord(
                 robot_id=robot.id,
@@ -200,17 +240,18 @@ class Recorder:
                 operator=operator,
                 reason=reason,
                 status="open",
-                path=_stored(self.data_dir, path),
+                path=store_relative(self.data_dir, path),
                 meta=meta,
             )
             s.add(row)
             s.commit()
-            robot.segment_id = row.id
+            rec.takeover_id = row.id
 
-    def segment_step(self, robot: Robot, frame: RobotFrame, step: RobotStep) -> None:
+    def takeover_step(self, robot: Robot, frame: RobotFrame, step: RobotStep) -> None:
         """One operator step: the command, the absolute action and its normalized fine-tune label,
         every signal's score and the denoising field (world frame)."""
-        if robot.segment is None or step.command is None or step.target is None:
+        writer = self._of(robot).takeover
+        if writer is None or step.command is None or step.target is None:
             return
         policy = robot.slot.policy
         label = policy.normalize_action(torch.as_tensor(step.action, dtype=torch.float32)).numpy()
@@ -218,15 +259,9 @@ class Recorder:
         if step.uncertainty is not None:
             world = step.uncertainty.to_world(policy.action_normalizer)
             field = (world.samples, world.vectors, world.labels, world.arrow_scale())
-        cmd = step.command
-        robot.segment.write_step(
+        writer.write_step(
             frame.obs,
-            {
-                "delta_pos": list(cmd.delta_pos),
-                "delta_rot": list(cmd.delta_rot),
-                "gripper": cmd.gripper,
-                "clamped": list(step.target.clamped),
-            },
+            {**step.command.to_dict(), "clamped": list(step.target.clamped)},
             step.action,
             label,
             frame.pos,
@@ -236,33 +271,19 @@ class Recorder:
             field=field,
         )
 
-    def close_segment(self, robot: Robot, ended_by: str) -> None:
-        """Ends the robot's takeover segment, if one is open; ended_by: one of ``db.SEGMENT_ENDS``."""
-        if robot.segment is None:
+    def close_takeover(self, robot: Robot, ended_by: str) -> None:
+        """Ends the robot's takeover, if one is open; ended_by: one of ``db.SEGMENT_ENDS``."""
+        rec = self._of(robot)
+        if rec.takeover is None:
             return
-        writer, robot.segment = robot.segment, None
+        writer, rec.takeover = rec.takeover, None
         writer.close("closed", ended_by)
         with self.sessions() as s:
-            row = s.get(SegmentRecord, robot.segment_id)
+            row = s.get(SegmentRecord, rec.takeover_id)
             if row is not None:
                 row.status, row.ended_by, row.steps, row.ended_at = "closed", ended_by, writer.steps, datetime.now(UTC)
                 s.commit()
-        robot.segment_id = None
-
-
-@dataclass
-class PendingStep:
-    """A step sent and not yet written: its outcome (success) comes with the next frame."""
-
-    t: int
-    obs: np.ndarray
-    action: np.ndarray
-    pos: np.ndarray
-    quat: np.ndarray
-    gripper: float
-    source: str
-    bodies: dict
-    extras: dict = field(default_factory=dict)  # ``keys.STEP_EXTRAS``
+        rec.takeover_id = None
 
 
 @dataclass
@@ -281,7 +302,7 @@ def recover(sessions: sessionmaker, data_dir: Path) -> Recovered:
     with sessions() as s:
         for row in s.scalars(select(SegmentRecord).where(SegmentRecord.status == "open")):
             try:
-                row.steps = recover_segment(resolve(data_dir, row.path))
+                row.steps = recover_segment(in_store(data_dir, row.path))
             except (SegmentReadError, OSError) as exc:
                 log.warning("segment %d: %s", row.id, exc)
                 row.steps, out.unreadable = 0, out.unreadable + 1
@@ -290,7 +311,7 @@ def recover(sessions: sessionmaker, data_dir: Path) -> Recovered:
         for ep in s.scalars(select(EpisodeRecord).where(EpisodeRecord.outcome.is_(None))):
             if ep.path is not None:
                 try:
-                    ep.steps = recover_episode(resolve(data_dir, ep.path))
+                    ep.steps = recover_episode(in_store(data_dir, ep.path))
                 except (EpisodeReadError, OSError) as exc:
                     log.warning("episode %d: %s", ep.id, exc)
                     out.unreadable += 1

@@ -24,7 +24,8 @@ from server.db import (
     session_factory,
 )
 from server.errors import ServiceError
-from server.finetune_job import FinetuneRunner, JobBusy, JobRequest, parse_since
+from server.finetune.job import FinetuneRunner, JobBusy
+from server.finetune.plan import JobRequest, parse_since
 from server.lease import FINETUNE_LEASE, acquire, release
 from sim.registry import make_task
 from tests.helpers import finetunable_policy_folder, write_segment
@@ -317,7 +318,7 @@ def test_a_discarded_takeover_is_never_trained_on_and_the_manifest_says_who_disc
 
 def test_a_discard_made_while_a_job_is_planned_still_applies(store):
     """The selection reads the flag when the job loads its data, not from the rows it was planned with."""
-    from server.finetune_plan import select_segments
+    from server.finetune.plan import select_segments
     from server.labels import LabelChange, set_label
     from storage.takeovers import TakeoverSelection
 
@@ -352,7 +353,7 @@ def test_job_summary_is_json(store):
 def test_the_gate_promotes_a_better_candidate_and_keeps_a_worse_one(store, monkeypatch, better):
     """Evaluation replaced by fixed results, so both of the gate's outcomes run end to end."""
     from policy.finetune import TaskResult
-    from server import finetune_stages
+    from server.finetune import stages
 
     sessions, data_dir, parent = store
     calls = []
@@ -363,7 +364,7 @@ def test_the_gate_promotes_a_better_candidate_and_keeps_a_worse_one(store, monke
         nut = 2 if first else (8 if better else 1)
         return {t: TaskResult(t, 10, 9 if t == TASK else nut, seed) for t in tasks}
 
-    monkeypatch.setattr(finetune_stages, "evaluate", fake_evaluate)
+    monkeypatch.setattr(stages, "evaluate", fake_evaluate)
     [summary] = FinetuneRunner(sessions, data_dir, progress=False).run(JobRequest(policy="lift-cube", config=TINY))
     child = registry.resolve(sessions, summary["version"])
     rows = {r.ref: r for r in registry.versions(sessions, "lift-cube")}
@@ -387,7 +388,7 @@ def test_a_queued_job_whose_process_dies_before_starting_is_marked_failed(store)
     import threading
 
     from server.db import utcnow
-    from server.scheduler import JobLauncher
+    from server.finetune.scheduler import JobLauncher
     from server.settings import FinetuneSettings
 
     sessions, data_dir, parent = store

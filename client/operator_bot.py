@@ -119,12 +119,8 @@ class OperatorBot:
                         log.info("robot %d: object held after %d steps, handing back", robot_id, steps)
                         self.client.post(f"{self.api}/robots/{robot_id}/release")
                         break
-                    cmd = expert.act(view).clamped(LIMITS)  # send what the robot will execute
-                    body = {
-                        "delta_pos": [float(x) for x in cmd.delta_pos],
-                        "delta_rot": [float(x) for x in cmd.delta_rot],
-                        "gripper": float(cmd.gripper),
-                    }
+                    # send what the robot will execute, in the command's wire form (the API's body)
+                    body = expert.act(view).clamped(LIMITS).to_dict()
                 r = self.client.post(f"{self.api}/robots/{robot_id}/command", json=body)
                 if r.status_code in (404, 409):  # lease lost, control handed back, episode over
                     break

@@ -1,0 +1,9 @@
+"""The hand-back rule's vocabulary: one name for each of its settings, wherever they appear.
+
+``policy.controller.ControllerConfig`` (the rule itself), the service's settings
+(``server.settings.Settings``) and the assisted rollouts' ``policy.assisted.AssistConfig`` use these
+names. A module of its own, with no import, so that reading the service's settings loads no torch.
+"""
+
+HAND_BACK = ("budgeted", "continuous")  # the values of ``hand_back``
+HAND_BACK_FIELDS = ("hand_back", "budget", "return_after", "cooldown")

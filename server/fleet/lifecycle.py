@@ -1,0 +1,176 @@
+"""A fleet robot's life: its worker, its episodes and its takeovers, one transition per method.
+
+The control loop (``server.fleet.loop``) and the operators' actions (``server.fleet.operators``) both
+change a robot through these transitions, always under the fleet lock: a worker is spawned, faults
+and restarts with backoff (``RESTART_BACKOFF``); an episode opens on the policy version its lineage is
+assigned (``server.fleet.policy_swap``), ends on its own (success, the horizon) or is interrupted (a
+fault, a reset, the service stopping); a takeover starts when a claim is applied, and ends with a
+hand-back, a lease that ran out, the episode's end or an interruption, each closing its recording,
+its assistance request and the operator's time.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from server.fleet.assistance import AssistanceQueue
+from server.fleet.metrics import OperatorClock
+from server.fleet.modes import FleetMode
+from server.fleet.policy_swap import PolicySwap
+from server.fleet.recording import Recorder
+from server.fleet.robot import Robot
+from server.workers import Priority, WorkerFactory, WorkerFault
+from sim.frame import RobotFrame
+
+log = logging.getLogger("hitl.fleet")
+
+RESTART_BACKOFF = (1.0, 2.0, 5.0, 10.0, 30.0)
+
+
+class Lifecycle:
+    """The transitions of the fleet's robots. workers: how a robot's worker is started; clock: the
+    operators' time in control, booked when a takeover ends."""
+
+    def __init__(
+        self,
+        recorder: Recorder,
+        queue: AssistanceQueue,
+        policies: PolicySwap,
+        workers: WorkerFactory,
+        clock: OperatorClock,
+    ) -> None:
+        self.recorder = recorder
+        self.queue = queue
+        self.policies = policies
+        self.workers = workers
+        self.clock = clock
+
+    # -- workers ----------------------------------------------------------------------------------------
+    def spawn(self, robot: Robot) -> None:
+        """Starts the robot's worker and its first episode."""
+        robot.worker = self.workers(robot.id, robot.task)
+        robot.worker.prioritize(Priority.BACKGROUND)
+        self.new_episode(robot)
+
+    def fault(self, robot: Robot, why: str) -> None:
+        """The robot's worker died: its episode is interrupted and the worker restarts after a backoff."""
+        log.warning("robot %d faulted: %s", robot.id, why.splitlines()[-1] if why else why)
+        self.interrupt(robot, "faulted", "worker-fault")
+        robot.slot.controller.remove(robot.id)
+        robot.set_mode(FleetMode.FAULTED)
+        robot.fault, robot.fresh = why, False
+        if robot.worker is not None:
+            robot.worker.kill()
+        robot.worker = None
+        robot.restart_at = time.monotonic() + RESTART_BACKOFF[min(robot.restarts, len(RESTART_BACKOFF) - 1)]
+        robot.restarts += 1
+
+    def restart_if_due(self, robot: Robot) -> None:
+        """A faulted robot whose backoff has run out gets a new worker."""
+        if robot.restart_at is not None and time.monotonic() >= robot.restart_at:
+            robot.fault, robot.restart_at = None, None
+            robot.set_mode(FleetMode.AUTONOMOUS)
+            self.spawn(robot)
+
+    # -- episodes ---------------------------------------------------------------------------------------
+    def new_episode(self, robot: Robot) -> None:
+        """The next episode, on the policy version assigned to the robot's lineage (hot swap)."""
+        self.policies.move_to_assigned(robot)
+        robot.seed += 1
+        robot.slot.controller.reset(robot.id, robot.seed)
+        robot.steps = robot.assisted_steps = robot.events = 0
+        robot.timeline.clear()  # a plot of this episode's steps
+        robot.teleop_left = None
+        robot.fresh = False  # the last frame stays on view until the reset's arrives
+        robot.commands.clear()
+        robot.set_mode(FleetMode.AUTONOMOUS)
+        robot.episode_id = self.recorder.open_episode(robot)
+        try:
+            robot.worker.request_reset(robot.seed)
+        except WorkerFault as exc:
+            self.fault(robot, str(exc))
+
+    def end_episode(self, robot: Robot, frame: RobotFrame) -> None:
+        """The episode ended on its own: success, or the horizon (never under an operator's hands)."""
+        outcome = "success" if frame.success else "timeout"
+        self.recorder.close_episode_file(robot, frame.success, frame.t, outcome)
+        self.end_takeover(robot, "episode-ended")  # a takeover that reached success (a timeout waits for hand-back)
+        robot.set_mode(FleetMode.DONE)
+        robot.episodes_done += 1
+        robot.successes += int(frame.success)
+        self.recorder.finish_episode(robot, outcome, frame.clock)
+        self.new_episode(robot)
+
+    def interrupt(self, robot: Robot, outcome: str, ended_by: str) -> None:
+        """Ends the episode early (fault, reset, shutdown): files and rows closed, request dropped.
+        ended_by: why, for a takeover in progress (``db.SEGMENT_ENDS``)."""
+        self.end_takeover(robot, ended_by)
+        self.recorder.close_episode_file(robot, None, robot.steps, outcome)
+        self.recorder.finish_episode(robot, outcome)
+        robot.commands.clear()
+
+    # -- takeovers --------------------------------------------------------------------------------------
+    def apply_handovers(self, robot: Robot) -> None:
+        """The robot's claims and releases accepted since they were last applied, in order, each only if
+        the queue still has its operator holding the robot. By the loop before it steps, and by every
+        other action that changes the robot before it does (a claim accepted before a reset is a
+        takeover that the reset ends)."""
+        handovers = robot.handovers.pending()
+        for h in handovers:
+            req = self.queue.get(robot.id)
+            if req is None or req.holder != h.operator:  # the request ended or the lease ran out meanwhile
+                continue
+            if h.kind == "claim":
+                self.take_over(robot, h.operator, req.reason)
+            else:
+                self.hand_back(robot)
+        if handovers:
+            robot.publish()
+            robot.handovers.applied(len(handovers))
+
+    def take_over(self, robot: Robot, operator: str, reason: str) -> None:
+        """``operator`` holds the robot's request: a waiting robot goes under their control."""
+        holder = self.recorder.takeover_operator(robot)
+        if holder is not None and holder != operator:
+            # the previous holder's lease ran out before a tick expired it: their takeover is over
+            self.recorder.close_takeover(robot, "lease-expired")
+            if robot.mode == FleetMode.TELEOP:
+                self.recorder.open_takeover(robot, operator, reason)
+        if robot.mode == FleetMode.WAITING:
+            robot.slot.controller.take_over(robot.id)
+            robot.teleop_left = robot.slot.controller.teleop_left(robot.id)
+            robot.set_mode(FleetMode.TELEOP)
+            if self.recorder.takeover_operator(robot) is None:
+                self.recorder.open_takeover(robot, operator, reason)
+
+    def hand_back(self, robot: Robot) -> None:
+        """Control returns to the policy, which restarts from the next frame with a fresh history (an
+        episode past its horizon then ends at that frame: its timeout waited for the hand-back)."""
+        self.end_takeover(robot, "hand-back")
+        if robot.id in robot.slot.controller:
+            robot.slot.controller.release(robot.id)
+        robot.commands.clear()
+        robot.set_mode(FleetMode.AUTONOMOUS)
+
+    def end_takeover(self, robot: Robot, ended_by: str) -> None:
+        """Closes the takeover's recording and request, and books the operator's time."""
+        self.recorder.close_takeover(robot, ended_by)
+        req = self.queue.close(robot.id)
+        if req is not None and req.holder and req.claimed_at is not None:
+            self.clock.add_busy(req.holder, time.monotonic() - req.claimed_at)
+
+    def expire_leases(self, robots: dict[int, Robot]) -> None:
+        """Claims whose lease ran out: the takeover is over, the robot holds and its request is queued again."""
+        for req in self.queue.expire():
+            if req.expired_holder and req.claimed_at is not None:
+                self.clock.add_busy(req.expired_holder, time.monotonic() - req.claimed_at)
+            robot = robots.get(req.robot_id)
+            if robot is None:
+                continue
+            self.recorder.close_takeover(robot, "lease-expired")  # paused or not: the takeover is over
+            robot.commands.clear()
+            if robot.mode == FleetMode.TELEOP and robot.frame is not None:
+                # (past the horizon, the next frame ends the episode: a timeout waited for this)
+                robot.slot.controller.ask(robot.id, robot.frame.hold)
+                robot.set_mode(FleetMode.WAITING)
