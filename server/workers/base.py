@@ -6,7 +6,7 @@ time (``request_reset`` / ``request_step``), answers it with a ``RobotFrame`` th
 without blocking, and reports failures as ``WorkerFault``. ``wait_any`` is the free-running loop's
 wait over workers of any back end; ``WorkerFactory`` is what a back end gives the fleet.
 
-The back ends (``pool``, ``in_process``, ``ray_actors``) implement this module and the registry
+The back ends (``process``, ``pool``, ``in_process``, ``ray_actors``) implement this module and the registry
 (``server.workers.registry``) names them; this module imports neither.
 """
 

@@ -1,5 +1,4 @@
-"""The process-spawning worker back ends: ``pool`` (several simulated robots per process) and
-``process`` (one robot per process: the pool with one robot per host).
+"""The ``pool`` worker back end: several simulated robots per spawned process.
 
 With a process per robot, every control step of every robot is a context switch into another
 process: on a 2-core machine with 16 robots the workers spent 5.8 ms of CPU per env step against 3.9
@@ -14,17 +13,14 @@ process that dies faults every robot it held, and each is restarted on a live ho
 Priorities apply per host: it runs at the control loop's niceness while any of its robots is under
 teleop (when the service may raise it), at the workers' niceness otherwise.
 
-``process`` (``process_workers``, the default) is this pool with one robot per host, named ``robot-<id>``:
-each robot's crash stays its own, its niceness is its own, and killing the robot kills its process.
+It shares its parts with the ``process`` back end (``server.workers.spawn``); a host of one robot
+(``robots_per_process = 1``) answers each request as it comes, and killing its robot kills it.
 """
 
 from __future__ import annotations
 
 import contextlib
-import logging
-import multiprocessing as mp
 import os
-import select
 import time
 import traceback
 from collections.abc import Sequence
@@ -33,17 +29,18 @@ from multiprocessing.connection import Connection, wait
 import numpy as np
 
 from server.workers.base import Priority, RobotWorker, WorkerFactory, WorkerFault
+from server.workers.spawn import SPAWN, Niceness, readable, serve_request
 from sim.frame import RobotFrame
 
-log = logging.getLogger("hitl.workers")
 
-
-def _host(conn: Connection) -> None:
+def _host(conn: Connection, shared: bool = True) -> None:
     """Process entry point: ``(cmd, rid, seq, arg)`` with cmd ``open`` (arg: the task's name), ``reset``
     (the seed), ``step`` ((action, hold)), ``urgent`` (whether the robot is under teleop), ``drop`` or
     ``close``; answers ``(rid, seq, status, payload)`` to resets and steps (``seq`` tells a robot's answer
     from a dropped predecessor's). It serves one request at a time and reads the pipe between two: the next
-    is an urgent robot's if one waits, so an operator's step never queues behind the other robots' physics."""
+    is an urgent robot's if one waits, so an operator's step never queues behind the other robots' physics.
+    ``shared`` False: the host of one robot, whose requests come one at a time, answers each as it comes
+    (no look at the pipe in between)."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from sim.registry import make_task
 
@@ -52,26 +49,16 @@ def _host(conn: Connection) -> None:
     def answer(cmd: str, rid: int, seq: int, arg) -> None:
         if rid in failed:  # its task could not be built
             conn.send((rid, seq, "error", failed[rid]))
-            return
-        try:
-            if cmd == "reset":
-                tasks[rid].reset(int(arg))
-                conn.send((rid, seq, "ok", RobotFrame.from_task(tasks[rid])))
-            else:
-                action, hold = arg
-                task = tasks[rid]
-                frame = RobotFrame.from_task(task, task.step(np.asarray(action, np.float64), hold))
-                conn.send((rid, seq, "ok", frame))
-        except Exception:  # one robot's error: reported to that robot, the others carry on
-            conn.send((rid, seq, "error", traceback.format_exc(limit=3)))
+        else:  # one robot's error is reported to that robot, the others carry on
+            conn.send((rid, seq, *serve_request(tasks[rid], cmd, arg)))
 
     pending: list[tuple] = []  # resets and steps not answered yet, in arrival order
-    arrived = _poller(conn)
+    arrived = readable(conn)
     try:
         while True:
             try:  # everything that has arrived (block only when there is nothing left to do)
                 waiting = [] if pending else [conn.recv()]
-                while arrived.poll(0):
+                while shared and arrived.poll(0):
                     waiting.append(conn.recv())
             except (EOFError, OSError):
                 return
@@ -106,35 +93,23 @@ def _host(conn: Connection) -> None:
                 task.close()
 
 
-def _poller(conn: Connection) -> select.poll:
-    """Whether ``conn`` has something to read (or its other end is gone): ``poll(0)``, one system call,
-    where ``Connection.poll`` builds a selector each time."""
-    poller = select.poll()
-    poller.register(conn.fileno(), select.POLLIN)
-    return poller
-
-
 class _Host:
     """One host process and the answers it has sent that no robot has polled yet. A host of ``capacity``
     1 is its robot's own process."""
 
-    _ctx = mp.get_context("spawn")
-    _priority_denied = False  # raising a priority needs CAP_SYS_NICE: logged once per service
-
     def __init__(self, name: str, niceness: int, capacity: int) -> None:
-        parent, child = self._ctx.Pipe()
-        self.process = self._ctx.Process(target=_host, args=(child,), daemon=True, name=name)
+        parent, child = SPAWN.Pipe()
+        self.process = SPAWN.Process(target=_host, args=(child, capacity > 1), daemon=True, name=name)
         self.process.start()
         child.close()
         self.conn = parent
-        self._arrived = _poller(parent)
-        self.niceness, self.capacity = niceness, capacity
+        self._arrived = readable(parent)
+        self.niceness, self.capacity = Niceness(niceness), capacity
         self.robots: set[int] = set()
         self.control: set[int] = set()  # robots that asked for the control loop's priority
         self.answers: dict[tuple[int, int], tuple[str, object]] = {}  # (robot, seq) -> (status, payload)
         self.seq = 0
         self.broken: str | None = None
-        self._nice: int | None = None
         self.renice()
 
     def alive(self) -> bool:
@@ -179,26 +154,8 @@ class _Host:
             self.process.kill()
 
     def renice(self) -> bool:
-        """The control loop's niceness (0) while a robot here is under teleop, ``niceness`` otherwise.
-        Raising a priority again needs CAP_SYS_NICE; without it the host stays at ``niceness``."""
-        want = 0 if self.control else self.niceness
-        if self._nice == want or self.process.pid is None:
-            return True
-        try:
-            os.setpriority(os.PRIO_PROCESS, self.process.pid, want)
-        except PermissionError:
-            if not _Host._priority_denied:
-                log.info("cannot raise worker priority for teleoperated robots (needs CAP_SYS_NICE)")
-            _Host._priority_denied = True
-            if self._nice != self.niceness:
-                with contextlib.suppress(PermissionError, ProcessLookupError):
-                    os.setpriority(os.PRIO_PROCESS, self.process.pid, self.niceness)
-                    self._nice = self.niceness
-            return False
-        except ProcessLookupError:
-            return False
-        self._nice = want
-        return True
+        """The control loop's niceness while a robot here is under teleop, the workers' otherwise."""
+        return self.niceness.apply(self.process.pid, bool(self.control))
 
     def kill(self) -> None:
         self._break(self.broken or "worker was killed")
@@ -215,7 +172,7 @@ class _Host:
 
 
 class PoolWorker(RobotWorker):
-    """One robot on a host process: shared with others (``pool``) or its own (``process``)."""
+    """One robot on a host process, shared with the host's other robots (up to ``robots_per_process``)."""
 
     def __init__(self, host: _Host, robot_id: int, task: str) -> None:
         super().__init__()
@@ -368,8 +325,3 @@ class PoolFactory:
 
 def pool_workers(niceness: int, robots_per_process: int) -> WorkerFactory:
     return PoolFactory(niceness, robots_per_process)
-
-
-def process_workers(niceness: int) -> WorkerFactory:
-    """A process per robot, named ``robot-<id>``: the pool with one robot per host."""
-    return PoolFactory(niceness, 1, name="robot-{robot}")

@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING
 
 from server.workers.base import WorkerFactory
 from server.workers.in_process import in_process_workers
-from server.workers.pool import pool_workers, process_workers
+from server.workers.pool import pool_workers
+from server.workers.process import process_workers
 from server.workers.ray_actors import RayFactory
 
 if TYPE_CHECKING:
@@ -20,7 +21,7 @@ if TYPE_CHECKING:
 
 
 WORKERS: dict[str, Callable[[Settings], WorkerFactory]] = {
-    "process": lambda s: process_workers(s.worker_niceness),  # the pool, one robot per process
+    "process": lambda s: process_workers(s.worker_niceness),
     "pool": lambda s: pool_workers(s.worker_niceness, s.robots_per_process),
     "in-process": lambda s: in_process_workers(),
     "ray": lambda s: RayFactory(s, s.robots_per_process, s.ray_cpus_per_actor),
