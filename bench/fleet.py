@@ -35,7 +35,7 @@ from tqdm import tqdm
 from bench.procstats import descendant_pids, memory_mb, processes_cpu_seconds, worker_pids
 from server.db import make_engine, migrate, session_factory
 from server.errors import ServiceError
-from server.fleet import Fleet
+from server.fleet.fleet import Fleet
 from server.settings import RobotGroup, Settings
 from server.workers import WORKERS
 from sim.spaces import TeleopCommand

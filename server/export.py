@@ -113,6 +113,7 @@ def collect(sessions: sessionmaker, data_dir: Path, query: ExportQuery, progress
             continue
         try:
             recorded = read_segment(in_store(data_dir, seg.path))
+            recorded.steps  # noqa: B018 - parsed here: a malformed step skips the segment like an unreadable file
         except (SegmentReadError, OSError) as exc:
             out.skipped[f"segment {seg.id}"] = f"unreadable ({exc})"
             continue

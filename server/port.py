@@ -1,7 +1,7 @@
 """``FleetPort``: all that the REST API and the operator console use of the fleet runtime.
 
 The API's routers (``server.api``) and the console (``web``) reach the fleet only through these
-members, typed here, never through its robots, queue, lock or settings. ``server.fleet.Fleet``
+members, typed here, never through its robots, queue, lock or settings. ``server.fleet.fleet.Fleet``
 implements it in the process that runs the control loop. A runtime in another process, or a Ray
 actor, implements it behind a client, and the API and the console run unchanged against it:
 every call below is already one that never waits for a tick in progress, or one that an admin makes

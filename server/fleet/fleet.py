@@ -25,11 +25,11 @@ import torch
 from sqlalchemy.orm import sessionmaker
 
 from server import registry
-from server.fleet import metrics
 from server.fleet.assistance import AssistanceQueue, AssistanceRequest
 from server.fleet.commands import CommandMailbox
 from server.fleet.lifecycle import Lifecycle
 from server.fleet.loop import ControlLoop
+from server.fleet.metrics import MetricsReport, OperatorClock, report
 from server.fleet.operators import OperatorActions
 from server.fleet.policy_swap import PolicySwap
 from server.fleet.recording import Recorder
@@ -58,7 +58,7 @@ class Fleet:
         self.robots: dict[int, Robot] = {}
         self.lock = threading.RLock()
         self.policies = PolicySwap(settings, sessions, self.lock, self.robots)  # slots, and the lineages' versions
-        self.operator_clock = metrics.OperatorClock()
+        self.operator_clock = OperatorClock()
         # how robots are started (the back end); public for the benchmarks, which read its overheads
         self.worker_factory = workers if workers is not None else WORKERS[settings.worker](settings)
         self.lifecycle = Lifecycle(self.recorder, self.queue, self.policies, self.worker_factory, self.operator_clock)
@@ -152,9 +152,6 @@ class Fleet:
     def requests(self) -> list[AssistanceRequest]:
         return self.operators.requests()
 
-    def robot(self, robot_id: int) -> Robot:
-        return self.operators.robot(robot_id)
-
     def request_help(self, robot_id: int, reason: str) -> None:
         self.operators.request_help(robot_id, reason)
 
@@ -203,6 +200,6 @@ class Fleet:
         self.policies.activate_policy(version, reason)
 
     # -- metrics ------------------------------------------------------------------------------------------
-    def metrics(self) -> metrics.MetricsReport:
+    def metrics(self) -> MetricsReport:
         """Fleet metrics; the episode totals come from one aggregate query, outside the fleet lock."""
-        return metrics.report(self.recorder.totals(), self.queue, self.operator_clock, self.views(), self.ticks)
+        return report(self.recorder.totals(), self.queue, self.operator_clock, self.views(), self.ticks)

@@ -9,14 +9,16 @@ compares equal to its value, and the API and the console show that value.
 from __future__ import annotations
 
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
-from policy.controller import Mode
+if TYPE_CHECKING:  # no torch to read a mode (tests/server/fleet/test_robot.py checks the values agree)
+    from policy.controller import Mode
 
 
 class FleetMode(StrEnum):
-    AUTONOMOUS = Mode.AUTONOMOUS.value
-    WAITING = Mode.WAITING.value
-    TELEOP = Mode.TELEOP.value
+    AUTONOMOUS = "autonomous"  # the controller's three (``policy.controller.Mode``)
+    WAITING = "waiting"
+    TELEOP = "teleop"
     PAUSED = "paused"
     DONE = "done"
     FAULTED = "faulted"

@@ -8,7 +8,7 @@ loop when it opens an episode); a robot in the middle of an episode finishes it 
 started with. So ``hitl policy promote`` or a fine-tuning job's promotion, from another process,
 reaches the running fleet the same way as the admin API.
 
-A collaborator of ``server.fleet.Fleet``, not a part of it: it owns the loaded slots and the lineage
+A collaborator of ``server.fleet.fleet.Fleet``, not a part of it: it owns the loaded slots and the lineage
 assignments, and only reads the fleet's robots (under the fleet's lock, which it is given). Loading a
 version is slow (weights, a trace), so it happens under its own lock, one load at a time, and only the
 assignment takes the fleet lock: a tick never waits for a load.

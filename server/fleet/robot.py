@@ -110,7 +110,7 @@ class Robot:
         """The robot's mode after a transition of the loop or an operator. A paused robot stays paused:
         the transition becomes the mode it resumes into. A fault ends a pause."""
         if self._mode == FleetMode.PAUSED and mode != FleetMode.FAULTED:
-            self._paused_from = mode
+            self._paused_from = FleetMode(mode)
         else:
             self._mode, self._paused_from = FleetMode(mode), None
 

@@ -41,7 +41,7 @@ SWITCH_INTERVAL_S = 0.001  # the runtime process's (sys.setswitchinterval), set 
 
 
 class RuntimeHost:
-    """Serves ``fleet`` (a ``server.fleet.Fleet``) to API processes at ``address`` (host, port; port 0:
+    """Serves ``fleet`` (a ``server.fleet.fleet.Fleet``) to API processes at ``address`` (host, port; port 0:
     a free one, read back from ``address`` once started)."""
 
     def __init__(

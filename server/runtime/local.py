@@ -6,7 +6,7 @@ launcher. ``hitl serve`` runs it in the API's own process (``api_workers = 0``, 
 or in a process of its own that API processes reach through ``server.runtime.host`` (``api_workers``
 > 0, ``service.replicas``).
 
-Two words, two things: the *fleet* is ``server.fleet.Fleet`` (the robots, the control loop, the
+Two words, two things: the *fleet* is ``server.fleet.fleet.Fleet`` (the robots, the control loop, the
 operators' actions); the *fleet runtime* is this class, the fleet with what runs once per service
 around it.
 """
@@ -20,7 +20,7 @@ from sqlalchemy.orm import sessionmaker
 
 from server.db import make_engine, migrate, session_factory
 from server.finetune.scheduler import FileClock, JobLauncher, Scheduler, ScheduleStatus, local_now
-from server.fleet import Fleet
+from server.fleet.fleet import Fleet
 from server.fleet.recording import recover
 from server.settings import Settings
 

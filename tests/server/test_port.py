@@ -4,7 +4,7 @@ import ast
 import inspect
 from pathlib import Path
 
-from server.fleet import Fleet
+from server.fleet.fleet import Fleet
 from server.port import MEMBERS, FleetPort
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -11,7 +11,7 @@ from policy.assisted import AssistConfig, run_assisted
 from policy.evaluate import rollout_policy
 from server.db import EpisodeRecord, PolicyVersion, make_engine, migrate, session_factory
 from server.errors import ServiceError
-from server.fleet import Fleet
+from server.fleet.fleet import Fleet
 from server.settings import RobotGroup, Settings
 from server.workers import InProcessWorker, Priority, in_process_workers
 from sim.spaces import TeleopCommand
