@@ -206,7 +206,7 @@ def _cmd_bench_signals(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
-    from policy.assisted import MODES
+    from policy.hand_back import HAND_BACK
 
     p = sub.add_parser("train-signal", help="train a signal's auxiliary models (if any) and calibrate it")
     p.add_argument("--policy", required=True, type=Path, help="policy folder written by `hitl train`")
@@ -229,7 +229,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--task", default=None)
     p.add_argument("--driver", default="denoising")
     p.add_argument("--shadow", default=None, help="comma-separated signals scored in shadow, or 'all'")
-    p.add_argument("--mode", choices=MODES, default="budgeted")
+    p.add_argument("--mode", choices=HAND_BACK, default="budgeted")
     p.add_argument("--budget", type=int, default=4, help="operator steps per assistance event (budgeted)")
     p.add_argument("--cooldown", type=int, default=0, help="policy steps after a hand-back without a new request")
     p.add_argument("--watchdog", type=float, default=None, help="also ask once at this fraction of the horizon")

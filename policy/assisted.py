@@ -40,7 +40,6 @@ from sim.spaces import TeleopCommand, TeleopLimits
 from sim.view import OperatorView
 from storage import keys
 
-MODES = HAND_BACK
 LIMITS = TeleopLimits()
 
 
@@ -60,8 +59,8 @@ class AssistConfig:
     operator_hands_back: bool = False
 
     def __post_init__(self) -> None:
-        if self.hand_back not in MODES:
-            raise ValueError(f"hand_back must be one of {MODES}, got {self.hand_back!r}")
+        if self.hand_back not in HAND_BACK:
+            raise ValueError(f"hand_back must be one of {HAND_BACK}, got {self.hand_back!r}")
         if not (isinstance(self.cooldown, int) and self.cooldown >= 0):
             raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
         for name in ("budget", "n_envs", "return_after"):

@@ -179,7 +179,7 @@ def _finite(name: str, v: object) -> float:
 
 
 def _vector3(name: str, raw: object) -> tuple[float, float, float]:
-    if type(raw) is not tuple and type(raw) is not list and isinstance(raw, str | bytes | Mapping):
+    if isinstance(raw, str | bytes | Mapping):
         raise ValueError(f"TeleopCommand.{name} must be 3 numbers, got {raw!r}")
     try:
         items = tuple(raw)

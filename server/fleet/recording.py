@@ -14,7 +14,7 @@ depend on the working directory.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -47,19 +47,15 @@ class EpisodeTotals:
     events: int = 0
 
 
-@dataclass
+@dataclass(frozen=True)
 class PendingStep:
-    """A step sent and not yet written: its outcome (success) comes with the next frame."""
+    """A step sent and not yet written: the frame it was decided on, what was sent, and its record's
+    extras (``keys.STEP_EXTRAS``); its outcome (success) comes with the next frame."""
 
-    t: int
-    obs: np.ndarray
+    frame: RobotFrame
     action: np.ndarray
-    pos: np.ndarray
-    quat: np.ndarray
-    gripper: float
     source: str
-    bodies: dict
-    extras: dict = field(default_factory=dict)  # ``keys.STEP_EXTRAS``
+    extras: dict
 
 
 @dataclass
@@ -147,8 +143,9 @@ class Recorder:
             return
         rec = self._of(robot)
         if (p := rec.pending) is not None and rec.episode is not None:
+            f = p.frame
             rec.episode.write_step(
-                p.t, p.obs, p.action, p.pos, p.quat, p.gripper, frame.success, p.source, p.bodies, p.extras
+                f.t, f.obs, p.action, f.pos, f.quat, f.gripper, frame.success, p.source, f.bodies, p.extras
             )
         rec.pending = None
         if frame.t == 0 and not frame.done and rec.episode is None:
@@ -180,7 +177,7 @@ class Recorder:
         rec = self._of(robot)
         if rec.episode is None or robot.frame is None:
             return
-        f, controller = robot.frame, robot.slot.controller
+        controller = robot.slot.controller
         extras: dict = {keys.STEP_POLICY_VERSION: robot.slot.version}
         asking = controller.asking
         if asking is not None and asking in step.scores:
@@ -190,8 +187,7 @@ class Recorder:
             extras[keys.STEP_COMMAND] = step.command.to_dict()
             if rec.takeover_id is not None:
                 extras[keys.STEP_TAKEOVER] = rec.takeover_id
-        action = np.asarray(step.action, np.float64)
-        rec.pending = PendingStep(f.t, f.obs, action, f.pos, f.quat, f.gripper, step.source, f.bodies, extras)
+        rec.pending = PendingStep(robot.frame, np.asarray(step.action, np.float64), step.source, extras)
 
     def close_episode_file(self, robot: Robot, success: bool | None, steps: int, reason: str) -> None:
         rec = self._of(robot)

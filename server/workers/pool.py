@@ -13,8 +13,8 @@ process that dies faults every robot it held, and each is restarted on a live ho
 Priorities apply per host: it runs at the control loop's niceness while any of its robots is under
 teleop (when the service may raise it), at the workers' niceness otherwise.
 
-It shares its parts with the ``process`` back end (``server.workers.spawn``); a host of one robot
-(``robots_per_process = 1``) answers each request as it comes, and killing its robot kills it.
+It shares its parts with the ``process`` back end (``server.workers.spawn``); killing the robot of a
+one-robot host (``robots_per_process = 1``) kills the host.
 """
 
 from __future__ import annotations
@@ -33,14 +33,12 @@ from server.workers.spawn import SPAWN, Niceness, readable, serve_request
 from sim.frame import RobotFrame
 
 
-def _host(conn: Connection, shared: bool = True) -> None:
+def _host(conn: Connection) -> None:
     """Process entry point: ``(cmd, rid, seq, arg)`` with cmd ``open`` (arg: the task's name), ``reset``
     (the seed), ``step`` ((action, hold)), ``urgent`` (whether the robot is under teleop), ``drop`` or
     ``close``; answers ``(rid, seq, status, payload)`` to resets and steps (``seq`` tells a robot's answer
     from a dropped predecessor's). It serves one request at a time and reads the pipe between two: the next
-    is an urgent robot's if one waits, so an operator's step never queues behind the other robots' physics.
-    ``shared`` False: the host of one robot, whose requests come one at a time, answers each as it comes
-    (no look at the pipe in between)."""
+    is an urgent robot's if one waits, so an operator's step never queues behind the other robots' physics."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from sim.registry import make_task
 
@@ -58,7 +56,7 @@ def _host(conn: Connection, shared: bool = True) -> None:
         while True:
             try:  # everything that has arrived (block only when there is nothing left to do)
                 waiting = [] if pending else [conn.recv()]
-                while shared and arrived.poll(0):
+                while arrived.poll(0):
                     waiting.append(conn.recv())
             except (EOFError, OSError):
                 return
@@ -99,7 +97,7 @@ class _Host:
 
     def __init__(self, name: str, niceness: int, capacity: int) -> None:
         parent, child = SPAWN.Pipe()
-        self.process = SPAWN.Process(target=_host, args=(child, capacity > 1), daemon=True, name=name)
+        self.process = SPAWN.Process(target=_host, args=(child,), daemon=True, name=name)
         self.process.start()
         child.close()
         self.conn = parent
