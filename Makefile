@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	lift-baselines-hitl-docs resume-docs nights-docs nights-lift-docs asking-dev-docs \
-	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs clean
+	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -193,6 +193,12 @@ resume-docs: install
 		--threads 2 --out docs/results/policy/resume-cup-stack.json --quiet
 	$(BIN)/hitl report resume --policy policies/open-drawer --at 0 10 20 40 80 --budgets 4 16 --episodes 12 \
 		--threads 2 --out docs/results/policy/resume-open-drawer.json --quiet
+
+# docs/benchmarks/hitl.md, "The floor": the oracle's fewest operator steps for 100% success (best-of-sweep), on the
+# bundled policies, with the simulated operator in carry-on style (about 15 min on 2 cores).
+floor-docs: install
+	$(BIN)/hitl bench floor --policy-root policies --report docs/benchmarks/hitl.md --section floor-c1 \
+		--cache runs/bench-floor --json --quiet > docs/results/hitl/floor-c1.json
 
 # docs/benchmarks/nights.md: 3 days of the fleet of configs/nights.toml with the operator bot (10 minutes each) and 2
 # nights of the service's own fine-tuning job between them; the pretraining data is recorded on the first night where

@@ -112,11 +112,12 @@ def run_in_process(task: str, policy_dir: Path, seeds: list[int], signal: str, b
     import torch
 
     from policy.assisted import AssistConfig, run_assisted
-    from policy.checkpoint import load_policy
+    from policy.checkpoint import check_fits, load_policy
     from policy.signals import load_signal
 
     torch.set_num_threads(1)
-    policy, _ = load_policy(policy_dir)
+    policy, info = load_policy(policy_dir)
+    check_fits(info, task, policy_dir)
     driver = load_signal(policy, policy_dir, signal)
     cfg = AssistConfig(hand_back="budgeted", budget=budget, n_envs=len(seeds), seed=0, batch_invariant=True)
     episodes, _ = run_assisted(policy, task, seeds, driver, None, cfg, progress=False)

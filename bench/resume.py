@@ -96,6 +96,7 @@ class TaskResume:
     alone: float  # success rate with no takeover
     alone_steps: float  # steps per autonomous episode
     cells: list[ResumeCell]
+    resume: str = "restart"  # what the policy saw after the hand-back (``policy.hand_back.RESUME``)
 
 
 @dataclass(frozen=True)
@@ -111,7 +112,8 @@ class ResumeReport:
             budgets = sorted({c.budget for c in t.cells})
             lines += [
                 f"`{t.policy}` on {t.task}, seeds {t.seeds[0]}–{t.seeds[-1]}: alone {t.alone:.0%} "
-                f"({t.alone_steps:.0f} steps per episode). One takeover at policy step k:",
+                f"({t.alone_steps:.0f} steps per episode). One takeover at policy step k, then a hand-back "
+                f"that {'keeps the takeover in the history' if t.resume == 'history' else 'restarts the history'}:",
                 "",
                 "| k | still running | "
                 + " | ".join(f"success, {b} operator steps (rescued / broke)" for b in budgets)
@@ -137,8 +139,10 @@ def task_resume(
     seed: int,
     n_envs: int = 8,
     progress: bool = True,
+    resume: str = "restart",
 ) -> TaskResume:
-    """One report row per (takeover step, budget) on ``episodes`` seeds from ``seed``."""
+    """One report row per (takeover step, budget) on ``episodes`` seeds from ``seed``; ``resume``: what the
+    policy sees after the hand-back (``policy.hand_back.RESUME``)."""
     if not steps or not budgets:
         raise ValueError("give at least one takeover step and one budget")
     seeds = list(range(seed, seed + episodes))
@@ -148,7 +152,7 @@ def task_resume(
     for budget in budgets:
         for at in steps:
             driver = AtStep(policy, AtStepConfig(at=at))
-            cfg = AssistConfig(hand_back="budgeted", budget=budget, n_envs=n_envs)
+            cfg = AssistConfig(hand_back="budgeted", budget=budget, n_envs=n_envs, resume=resume)
             eps, _ = run_assisted(policy, task, seeds, driver, config=cfg, progress=progress)
             won = np.array([e.success for e in eps])
             cells.append(
@@ -162,4 +166,5 @@ def task_resume(
                     assisted_steps=float(np.mean([e.assisted_steps for e in eps])),
                 )
             )
-    return TaskResume(task, policy_name, seeds, float(ok.mean()), float(np.mean([e.steps for e in alone])), cells)
+    steps = float(np.mean([e.steps for e in alone]))
+    return TaskResume(task, policy_name, seeds, float(ok.mean()), steps, cells, resume)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from policy.checkpoint import load_calibration, load_policy
+from policy.checkpoint import check_fits, load_calibration, load_policy
 from policy.evaluate import PolicyEpisode, rollout_policy, summarize
 from policy.uncertainty import UncertaintyConfig
 
@@ -47,7 +47,8 @@ class Check:
 
 
 def _run(policy_dir: Path, task: str, episodes: int, seed: int, progress: bool) -> tuple[list[PolicyEpisode], dict]:
-    policy, _ = load_policy(policy_dir)
+    policy, info = load_policy(policy_dir)
+    check_fits(info, task, policy_dir)
     eps, timing = rollout_policy(
         policy,
         task,

@@ -18,6 +18,7 @@ import httpx
 import numpy as np
 
 from policy.lockstep import OVERTIME
+from sim.experts import OperatorStyle
 from sim.registry import make_expert
 from sim.spaces import TeleopLimits
 from sim.view import OperatorView, ViewUnavailable
@@ -49,11 +50,19 @@ class OperatorBot:
     and server errors are logged and retried with backoff."""
 
     def __init__(
-        self, url: str, token: str, heartbeat_s: float = 1.0, timeout: float = 10.0, hands_back_when_held: bool = False
+        self,
+        url: str,
+        token: str,
+        heartbeat_s: float = 1.0,
+        timeout: float = 10.0,
+        hands_back_when_held: bool = False,
+        style: OperatorStyle | str = OperatorStyle.CARRY_ON,
     ) -> None:
         """hands_back_when_held: release a robot once the object it was asked about is held (``Expert.holding``;
-        as ``policy.assisted.ExpertOperator`` does with it), instead of driving until the service hands back."""
+        as ``policy.assisted.ExpertOperator`` does with it), instead of driving until the service hands back;
+        style: how it plans at each request (``sim.experts.OperatorStyle``)."""
         self.api = url.rstrip("/") + "/api/v1"
+        self.style = OperatorStyle(style)
         self.hands_back_when_held = hands_back_when_held
         self.client = httpx.Client(headers={"Authorization": f"Bearer {token}"}, timeout=timeout)
         self.heartbeat_s = heartbeat_s
@@ -150,18 +159,19 @@ class OperatorBot:
     def _expert_for(self, robot_id: int, task: OperatorView, raw: dict, seed: int):
         """The expert driving this robot, as the in-process simulated operator has it
         (``policy.assisted.ExpertOperator``): one per episode, re-planned at each request from the view,
-        seeded by (episode seed, requests so far), carrying on with its plan when nothing moved the robot
-        since its last command (the robot's clock is where that command left it)."""
+        in its style (``Expert.take_over``: episode seed, requests so far), carrying on with
+        its plan when nothing moved the robot since its last command (the robot's clock is where that
+        command left it)."""
         episode = raw.get("episode_seed")
         if episode is None:  # a service that does not report its episodes: a fresh plan per takeover
             expert = make_expert(task.name, retry=True)
             expert.resume(task, np.random.default_rng([seed, robot_id]))
             return expert
         if self._driving.get(robot_id, [None])[0] != episode:
-            self._driving[robot_id] = [episode, make_expert(task.name, retry=True), None]
+            self._driving[robot_id] = [episode, make_expert(task.name, retry=True, style=self.style), None]
         _, expert, left_at = self._driving[robot_id]
-        rng = np.random.default_rng([int(episode), int(raw.get("events") or 0)])
-        expert.resume(task, rng, carry_on=left_at is not None and left_at == raw.get("clock"))
+        carry_on = left_at is not None and left_at == raw.get("clock")
+        expert.take_over(task, int(episode), int(raw.get("events") or 0), carry_on)
         return expert
 
     def _wait_applied(self, robot_id: int, before: int, clock: int | None, timeout: float = 5.0) -> None:

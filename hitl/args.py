@@ -63,13 +63,17 @@ def set_threads(args: argparse.Namespace) -> None:
 
 
 def policy_with(args: argparse.Namespace):
-    """Loads the policy (optionally with another DDIM step count) and its calibration."""
+    """Loads the policy (optionally with another DDIM step count) and its calibration; CheckpointError
+    (exit 2) when it cannot run the task it is run on (``--task``, else the one it was trained on:
+    ``policy.checkpoint.check_fits``)."""
     from dataclasses import replace
 
-    from policy.checkpoint import load_calibration, load_policy
+    from policy.checkpoint import check_fits, load_calibration, load_policy
     from policy.diffusion_policy import DiffusionPolicy
 
     policy, info = load_policy(args.policy)
+    if task := getattr(args, "task", None) or info.get("task"):
+        check_fits(info, task, args.policy)
     if getattr(args, "ddim_steps", None):
         state = policy.state_dict()
         policy = DiffusionPolicy(replace(policy.config, num_inference_steps=args.ddim_steps))

@@ -110,17 +110,52 @@ def _cmd_bench_hitl_service(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.policy}: no policy there (config.json not found)")
     if args.episodes < 1 or args.budget < 1:
         raise ValueError("--episodes and --budget must be >= 1")
-    from policy.checkpoint import load_policy
+    from policy.checkpoint import check_fits, load_policy
     from policy.signals import load_signal
     from policy.signals.registry import signal_class
 
     signal_class(args.signal)  # an unknown name is named with the registered ones
-    load_signal(load_policy(args.policy)[0], args.policy, args.signal)  # a missing calibration, before serving
+    policy, info = load_policy(args.policy)
+    check_fits(info, args.task, args.policy)  # a policy that cannot run the task, before serving
+    load_signal(policy, args.policy, args.signal)  # a missing calibration, before serving
 
     out = bench_hitl_service(args.task, args.policy, args.episodes, args.signal, args.budget, not args.quiet)
     out["command"] = "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     print(json.dumps(out, indent=None if args.json else 2))
     return 0 if out["identical"] else 1
+
+
+def _cmd_bench_floor(args: argparse.Namespace) -> int:
+    from bench.floor import FloorRecipe, markdown, run_floor
+    from bench.hitl.run import default_jobs
+
+    tasks = tuple(args.tasks or TASKS)
+    recipe = FloorRecipe(
+        policies=_policies(args, tasks),
+        tasks=tasks,
+        episodes=args.episodes,
+        seed=args.seed,
+        dev_episodes=args.dev_episodes,
+        dev_seed=args.dev_seed,
+        budget=args.budget,
+        finalists=args.finalists,
+        operator=args.operator,
+        resume=args.resume,
+        quick=args.quick,
+    )
+    summary = run_floor(recipe, args.cache, jobs=args.jobs or default_jobs(), progress=not args.quiet)
+    summary["provenance"] = {
+        "command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "machine": f"{platform.machine()}, {_cpus()} CPU cores, {platform.python_implementation()} "
+        f"{platform.python_version()}, no GPU used",
+        "date": datetime.date.today().isoformat(),
+    }
+    if args.report:
+        from bench.report_sections import replace_section
+
+        summary["report"] = str(replace_section(args.report, args.section, markdown(summary)))
+    print(json.dumps(summary, indent=None if args.json else 2))
+    return 0
 
 
 def _cpus() -> int:
@@ -182,6 +217,35 @@ def register(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--json", action="store_true", help="one line of JSON")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_hitl_service)
+
+    q = bench.add_parser(
+        "floor",
+        help="the fewest operator steps any asking signal could need: an oracle that asks from the simulator's "
+        "state, swept on development seeds, best-of-sweep on the evaluation seeds (bench.floor)",
+    )
+    q.add_argument("--tasks", nargs="+", default=None, help=f"default: {' '.join(TASKS)}")
+    q.add_argument("--policy-root", default="policies", help="folder holding lift-cube/, cup-stack/, open-drawer/")
+    q.add_argument("--policy", nargs="+", metavar="TASK=FOLDER", help="the policy for a task (overrides the root)")
+    q.add_argument("--episodes", type=int, default=20, help="evaluation episodes per task")
+    q.add_argument("--seed", type=int, default=1000, help="first evaluation seed")
+    q.add_argument("--dev-episodes", type=int, default=12, help="development episodes per grid point")
+    q.add_argument("--dev-seed", type=int, default=2000, help="first development seed")
+    q.add_argument("--budget", type=int, default=4, help="operator steps per request")
+    q.add_argument("--finalists", type=int, default=3, help="grid points run on the evaluation seeds")
+    q.add_argument("--operator", default="carry-on", help="the simulated operator's style: carry-on or replan")
+    q.add_argument(
+        "--resume",
+        default="restart",
+        help="after a hand-back the policy's history restarts (default) or keeps the takeover's frames ('history')",
+    )
+    q.add_argument("--quick", action="store_true", help="one grid point per window (its widest reach, no cap)")
+    q.add_argument("--jobs", type=int, default=None, help="worker processes (default: up to 2)")
+    q.add_argument("--cache", type=Path, default=Path("runs/bench-floor"), help="cell results cache")
+    q.add_argument("--report", type=Path, default=None, help="write the floor table into this page")
+    q.add_argument("--section", default="floor", help="the report section this run writes")
+    q.add_argument("--json", action="store_true", help="one line of JSON")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_floor)
 
 
 def _cmd_bench_finetune(args: argparse.Namespace) -> int:

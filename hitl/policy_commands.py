@@ -14,7 +14,7 @@ from hitl.args import add_uncertainty_args, non_negative_int, policy_with, posit
 def _cmd_train(args: argparse.Namespace) -> int:
     import torch
 
-    from policy.checkpoint import save_policy
+    from policy.checkpoint import check_fits, layout_info, save_policy
     from policy.config import DiffusionPolicyConfig
     from policy.diffusion_policy import DiffusionPolicy
     from policy.frames import ObjectFrame
@@ -23,6 +23,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from sim.demos import read_recipe
     from sim.registry import make_task
     from storage.dataset import DatasetConfig, load_dataset
+    from storage.obs_layout import describe, mismatched
     from storage.paths import portable
 
     task = make_task(args.task)  # validates the name; the simulator is not built
@@ -30,6 +31,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     ds = load_dataset(
         args.data, DatasetConfig(obs_horizon=args.obs_horizon, action_horizon=args.action_horizon, split_seed=args.seed)
     )
+    if other := mismatched(zip(ds.names, ds.meta, strict=True), task.obs_spec.labels()):
+        name, why = next(iter(other.items()))
+        raise ValueError(
+            f"{len(other)} episode(s) of {args.data} were recorded with another observation layout than task "
+            f"{args.task}'s {describe(task.obs_spec.labels())}, e.g. {name}: {why}"
+        )
     if ds.obs.shape[1] != task.obs_spec.dim:
         raise ValueError(
             f"{args.data} holds {ds.obs.shape[1]}-dim observations, task {args.task} has "
@@ -50,6 +57,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         else args.obs_fourier_octaves,
         object_frame=frame,
     )
+    check_fits({"policy": cfg.to_dict(), **layout_info(task.obs_spec)}, args.task, args.out)  # before training
     if args.symmetry_augment and task.symmetry_order < 2:
         raise ValueError(f"--symmetry-augment: task {args.task} has no scene symmetry to augment with")
     tcfg = TrainConfig(
@@ -78,6 +86,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     )
     info = {
         "task": args.task,
+        **layout_info(task.obs_spec),  # the observation layout it is trained on: check_fits compares it
         "dataset": {
             "folder": portable(args.data),
             "episodes": ds.num_episodes,
@@ -164,7 +173,7 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     set_threads(args)
     from policy.calibrate import calibrate
-    from policy.checkpoint import load_policy, save_calibration
+    from policy.checkpoint import check_fits, load_policy, save_calibration
     from policy.evaluate import rollout_check
 
     policy, info = load_policy(args.policy)
@@ -172,6 +181,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     task = args.task or info.get("task")
     if args.rollouts and not task:
         raise ValueError(f"{args.policy}/config.json names no task: pass --task for the rollout check")
+    if args.rollouts:
+        check_fits(info, task, args.policy)
     cal = calibrate(policy, info, args.data, args.quantile, config, progress=not args.quiet)
     record = cal.to_dict()
     check = None

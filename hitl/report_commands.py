@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from hitl.args import add_uncertainty_args, non_negative_int, policy_with, positive_int, set_threads, uncertainty_config
+from policy.hand_back import RESUME
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
@@ -158,12 +159,14 @@ def _write_report(report, out: Path | None) -> int:
 def _cmd_separation(args: argparse.Namespace) -> int:
     set_threads(args)
     from bench.separation import shift_separation
-    from policy.checkpoint import load_policy
+    from policy.checkpoint import check_fits, load_policy
 
     policy, info = load_policy(args.policy)
     in_task = args.in_task or info.get("task")
     if not in_task:
         raise ValueError(f"{args.policy}/config.json names no task: pass --in-task")
+    for task in dict.fromkeys([in_task, *args.shift_tasks]):
+        check_fits(info, task, args.policy)
     report = shift_separation(
         policy,
         args.policy,
@@ -180,10 +183,12 @@ def _cmd_separation(args: argparse.Namespace) -> int:
 def _cmd_novelty(args: argparse.Namespace) -> int:
     set_threads(args)
     from bench.novelty import task_novelty
-    from policy.checkpoint import load_policy
+    from policy.checkpoint import check_fits, load_policy
     from policy.signals.spread_stall import SpreadStallConfig
 
-    policy, _ = load_policy(args.policy)
+    policy, info = load_policy(args.policy)
+    for task in dict.fromkeys(args.tasks):
+        check_fits(info, task, args.policy)
     gate = args.gate if args.gate is not None else SpreadStallConfig().novelty_gate
     report = task_novelty(policy, args.policy, args.tasks, args.episodes, args.seed, gate, progress=not args.quiet)
     return _write_report(report, args.out)
@@ -192,14 +197,23 @@ def _cmd_novelty(args: argparse.Namespace) -> int:
 def _cmd_resume(args: argparse.Namespace) -> int:
     set_threads(args)
     from bench.resume import ResumeReport, task_resume
-    from policy.checkpoint import load_policy
+    from policy.checkpoint import check_fits, load_policy
 
     policy, info = load_policy(args.policy)
     task = args.task or info.get("task")
     if not task:
         raise SystemExit("hitl report resume: the policy names no task; give --task")
+    check_fits(info, task, args.policy)
     row = task_resume(
-        policy, str(args.policy), task, args.at, args.budgets, args.episodes, args.seed, progress=not args.quiet
+        policy,
+        str(args.policy),
+        task,
+        args.at,
+        args.budgets,
+        args.episodes,
+        args.seed,
+        progress=not args.quiet,
+        resume=args.resume,
     )
     return _write_report(ResumeReport([row]), args.out)
 
@@ -269,6 +283,12 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     q.add_argument("--budgets", type=positive_int, nargs="+", default=[4], help="operator steps (default: 4)")
     q.add_argument("--episodes", type=positive_int, default=8, help="episodes per takeover step")
     q.add_argument("--seed", type=int, default=2000, help="first seed (default: the development seeds)")
+    q.add_argument(
+        "--resume",
+        choices=RESUME,
+        default="restart",
+        help="after the hand-back the policy's history restarts (default) or keeps the takeover's frames",
+    )
     q.add_argument("--out", type=Path, help="JSON file to write (the markdown table is printed)")
     q.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all)")
     q.add_argument("--quiet", action="store_true")

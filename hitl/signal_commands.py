@@ -33,6 +33,16 @@ def _load(args: argparse.Namespace):
     return load_policy(args.policy)
 
 
+def _check_fits(args: argparse.Namespace, info: dict) -> str:
+    """The task the policy is run on (``--task``, else its own); CheckpointError (exit 2) when it cannot
+    run it (``policy.checkpoint.check_fits``)."""
+    from policy.checkpoint import check_fits
+
+    task = args.task or info["task"]
+    check_fits(info, task, args.policy)
+    return task
+
+
 def _cmd_train_signal(args: argparse.Namespace) -> int:
     from policy.signal_data import demo_data, policy_rollouts
     from policy.signals import make_signal, save_signal
@@ -42,7 +52,7 @@ def _cmd_train_signal(args: argparse.Namespace) -> int:
     signal = make_signal(args.signal, policy, _parse_settings(args.set))
     data = demo_data(policy, info, args.data)
     if signal.needs_rollouts or signal.has_models:
-        task = args.task or info["task"]
+        task = _check_fits(args, info)
         seeds = list(range(args.rollout_seed, args.rollout_seed + args.rollouts))
         data.rollouts = policy_rollouts(policy, args.policy, task, seeds, n_envs=args.envs, progress=not args.quiet)
     training = signal.fit(data, args.steps, progress=not args.quiet) if signal.has_models else None
@@ -108,7 +118,7 @@ def _cmd_assist(args: argparse.Namespace) -> int:
     from policy.signals import SignalError
 
     policy, info = _load(args)
-
+    _check_fits(args, info)
     names = _names(args.shadow) if args.shadow else []
     signals = _signals_for(policy, args.policy, [args.driver])
     skipped = {}
@@ -174,7 +184,7 @@ def _cmd_bench_signals(args: argparse.Namespace) -> int:
     from policy.signals import SignalError
 
     policy, info = _load(args)
-    task = args.task or info["task"]
+    task = _check_fits(args, info)
     seeds = list(range(args.seed, args.seed + args.episodes))
     steps = policy_rollouts(policy, args.policy, task, seeds, n_envs=min(4, len(seeds)), progress=not args.quiet)
     signals, skipped = {}, {}

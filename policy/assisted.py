@@ -30,10 +30,11 @@ import torch
 
 from policy.controller import Controller, ControllerConfig, RobotStep
 from policy.diffusion_policy import DiffusionPolicy
-from policy.hand_back import HAND_BACK
-from policy.lockstep import run_lockstep
+from policy.hand_back import HAND_BACK, RESUME
+from policy.lockstep import ResetHook, run_lockstep
 from policy.signals.base import AssistanceSignal
 from sim.env import Task
+from sim.experts import OperatorStyle
 from sim.frame import RobotFrame
 from sim.registry import make_expert, make_task
 from sim.spaces import TeleopCommand, TeleopLimits
@@ -48,6 +49,7 @@ class AssistConfig:
     hand_back: str = "budgeted"  # the controller's names (``policy.hand_back.HAND_BACK_FIELDS``)
     budget: int = 4  # operator steps per assistance event (budgeted mode)
     cooldown: int = 0  # policy steps after a hand-back on which the robot does not ask again
+    resume: str = "restart"  # what the policy sees first after a hand-back (``policy.hand_back.RESUME``)
     watchdog: float | None = None  # ask once at this fraction of the horizon without success
     n_envs: int = 4
     seed: int = 0
@@ -57,10 +59,16 @@ class AssistConfig:
     # the simulated operator hands back once the scene shows the object held (``Expert.holding``), as a
     # console operator asked to help with a grasp does
     operator_hands_back: bool = False
+    # how the simulated operator plans at a takeover after the policy moved the robot (``sim.experts.OperatorStyle``)
+    operator: str = OperatorStyle.CARRY_ON
 
     def __post_init__(self) -> None:
+        if self.operator not in tuple(OperatorStyle):
+            raise ValueError(f"operator must be one of {[str(s) for s in OperatorStyle]}, got {self.operator!r}")
         if self.hand_back not in HAND_BACK:
             raise ValueError(f"hand_back must be one of {HAND_BACK}, got {self.hand_back!r}")
+        if self.resume not in RESUME:
+            raise ValueError(f"resume must be one of {RESUME}, got {self.resume!r}")
         if not (isinstance(self.cooldown, int) and self.cooldown >= 0):
             raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
         for name in ("budget", "n_envs", "return_after"):
@@ -106,14 +114,22 @@ class AssistedEpisode:
 class ExpertOperator:
     """The task's scripted expert as the simulated operator, driving from the operator view only
     (``OperatorView``: pose, gripper and the scene, as ``hitl operator-bot`` sees them through the
-    API). At each takeover it picks up where the scene stands (``Expert.resume``, seeded by the
-    episode seed and the event count); its commands are clamped to the teleop limits, as a console's
-    are. With ``hands_back_when_held`` it hands the robot back once the object, not held when it took
-    over, is held (``Expert.holding``): it was asked for help, it gave the grasp."""
+    API). At each takeover it picks up where the scene stands (``Expert.take_over``: in the default
+    ``carry-on`` style with one plan per episode, in ``replan`` style afresh at each request); its
+    commands are clamped to the teleop limits, as a console's are. With ``hands_back_when_held`` it
+    hands the robot back once the object, not held when it took over, is held (``Expert.holding``): it
+    was asked for help, it gave the grasp."""
 
-    def __init__(self, task_name: str, seeds: list[int], hands_back_when_held: bool = False) -> None:
+    def __init__(
+        self,
+        task_name: str,
+        seeds: list[int],
+        hands_back_when_held: bool = False,
+        style: OperatorStyle | str = OperatorStyle.CARRY_ON,
+    ) -> None:
         self.task_name, self.seeds = task_name, seeds
         self.hands_back_when_held = hands_back_when_held
+        self.style = OperatorStyle(style)
         self.experts: dict[int, object] = {}
         self.events: dict[int, int] = {}
         self.clock: dict[int, int] = {}  # the robot's step clock after this operator's last command
@@ -123,10 +139,10 @@ class ExpertOperator:
         """Plans from the view, or carries on with its plan when the policy has not moved the robot
         since this operator's last command (only hold steps in between: the clock has not moved)."""
         self.events[robot_id] = self.events.get(robot_id, 0) + 1
-        expert = self.experts.setdefault(robot_id, make_expert(self.task_name, retry=True))
+        expert = self.experts.setdefault(robot_id, make_expert(self.task_name, retry=True, style=self.style))
         view = OperatorView.from_frame(self.task_name, frame)
-        rng = np.random.default_rng([self.seeds[robot_id], self.events[robot_id]])
-        expert.resume(view, rng, carry_on=self.clock.get(robot_id) == frame.clock)
+        carry_on = self.clock.get(robot_id) == frame.clock
+        expert.take_over(view, self.seeds[robot_id], self.events[robot_id], carry_on)
         self.held_at_start[robot_id] = expert.holding(view)
 
     def hands_back(self, robot_id: int, frame: RobotFrame) -> bool:
@@ -148,11 +164,14 @@ def run_assisted(
     shadow: dict[str, AssistanceSignal] | None = None,
     config: AssistConfig | None = None,
     progress: bool = True,
+    on_reset: ResetHook | None = None,
 ) -> tuple[list[AssistedEpisode], dict]:
     """One assisted episode per seed, in waves of ``n_envs`` robots stepping in lockstep through the
     fleet's ``Controller``: a robot that asks holds for one step while the simulated operator takes
     over, then the operator's commands drive it until control returns. With no ``driver`` nothing
-    asks: the policy runs alone and every ``shadow`` signal is scored (autonomous shadow runs)."""
+    asks: the policy runs alone and every ``shadow`` signal is scored (autonomous shadow runs).
+    on_reset: told each robot's task at the start of its episode (a benchmark's privileged probe,
+    ``bench.oracle``)."""
     cfg = config or AssistConfig()
     driver_name = driver.name if driver is not None else None
     shadow = {k: v for k, v in (shadow or {}).items() if k != driver_name}
@@ -167,6 +186,7 @@ def run_assisted(
             budget=cfg.budget,
             return_after=cfg.return_after if cfg.hand_back == "continuous" else None,
             cooldown=cfg.cooldown,
+            resume=cfg.resume,
             watchdog=cfg.watchdog,
             seed=cfg.seed,
             batch_invariant=cfg.batch_invariant,
@@ -201,9 +221,10 @@ def run_assisted(
             seeds,
             cfg.n_envs,
             record,
-            ExpertOperator(task_name, seeds, hands_back_when_held=cfg.operator_hands_back),
+            ExpertOperator(task_name, seeds, hands_back_when_held=cfg.operator_hands_back, style=cfg.operator),
             progress,
             f"assisted {task_name} ({driver_name})" if driver is not None else f"shadow {task_name}",
+            on_reset=on_reset,
         )
     for ep, out in zip(episodes, outcomes, strict=True):
         ep.success, ep.steps = out.success, out.steps

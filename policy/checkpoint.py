@@ -1,8 +1,12 @@
 """Policy checkpoints: ``model.safetensors`` (weights and normalizer buffers) + ``config.json``.
 
-``config.json`` holds the policy config, the task, the dataset statistics and
+``config.json`` holds the policy config, the task, the observation layout it was trained on
+(``obs_labels``: the task's ``ObsSpec.labels``; older checkpoints have none), the dataset statistics and
 the command that produced the checkpoint. ``calibration.json`` (written by
 ``hitl calibrate``) holds the uncertainty threshold. Nothing is pickled.
+
+``check_fits`` says whether a checkpoint can run a task, and if not, everything that differs: every
+place that loads a policy to run a task calls it.
 """
 
 from __future__ import annotations
@@ -14,6 +18,8 @@ from safetensors.torch import load_file, save_file
 
 from policy.config import DiffusionPolicyConfig
 from policy.diffusion_policy import DiffusionPolicy
+from storage import keys
+from storage.obs_layout import describe, difference, recorded
 
 FORMAT = "hitl-diffusion-policy/1"
 WEIGHTS = "model.safetensors"
@@ -77,6 +83,48 @@ def load_policy(folder: str | Path) -> tuple[DiffusionPolicy, dict]:
         raise CheckpointError(f"{weights}: cannot load weights: {exc}") from exc
     policy.eval()
     return policy, doc
+
+
+def layout_info(obs_spec) -> dict:
+    """The config.json entry recording the observation layout a policy is trained on (``save_policy``'s
+    ``info``): ``{"obs_labels": [...]}`` from the task's ``ObsSpec``."""
+    return {keys.OBS_LABELS: obs_spec.labels()}
+
+
+def check_fits(info: dict, task: str, policy: str | Path = "the policy") -> None:
+    """Raises CheckpointError naming every way the checkpoint whose config.json is ``info`` (``read_info``,
+    ``load_policy``) cannot run ``task``: its observation channels against the task's (missing, extra or
+    reordered, by name; by their number for a checkpoint that records no layout), its action size
+    against ``sim.spaces.ACTION_DIM``, and its chunking (``obs_horizon``, ``action_horizon``) against
+    the task's horizon. ``policy`` names it in the message. KeyError for a task that is not registered."""
+    from sim.registry import make_task  # the simulated tasks only when a task is named
+    from sim.spaces import ACTION_DIM
+
+    spec = make_task(task)  # names and specs only: the simulator is not built
+    try:
+        config = DiffusionPolicyConfig.from_dict(info["policy"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckpointError(f"policy {policy}: bad policy config in {CONFIG}: {exc}") from exc
+    problems = []
+    want, labels = spec.obs_spec.labels(), recorded(info)
+    if labels is not None and len(labels) != config.obs_dim:
+        problems.append(f"its {CONFIG} records {len(labels)} observation channels for {config.obs_dim}-dim inputs")
+    elif labels is not None and (diff := difference(labels, want)):
+        problems.append(
+            f"it was trained on observations {describe(labels)}, task {task} gives {describe(want)}: " + "; ".join(diff)
+        )
+    elif labels is None and config.obs_dim != len(want):
+        problems.append(
+            f"it takes {config.obs_dim}-dim observations (its {CONFIG} records no layout), task {task} gives "
+            f"{len(want)}: {describe(want)}"
+        )
+    if config.action_dim != ACTION_DIM:
+        problems.append(f"it predicts {config.action_dim}-dim actions, the tasks take {ACTION_DIM}")
+    for name, steps in (("action_horizon", config.action_horizon), ("obs_horizon", config.obs_horizon)):
+        if steps > spec.horizon:
+            problems.append(f"its {name} of {steps} steps is longer than task {task}'s horizon of {spec.horizon}")
+    if problems:
+        raise CheckpointError(f"policy {policy} cannot run task {task}: " + "; ".join(problems))
 
 
 def save_calibration(folder: str | Path, calibration: dict) -> Path:

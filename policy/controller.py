@@ -6,8 +6,8 @@ benchmarks) are thin drivers around it, so what we evaluate and benchmark is wha
 
 Per robot, keyed by robot id, the controller owns:
 
-- the observation history (``obs_horizon`` frames; filled with the first frame of an episode and
-  again after a hand-back);
+- the observation history (``obs_horizon`` frames; filled with the first frame of an episode, and
+  again after a hand-back unless ``resume = "history"`` keeps the takeover's frames);
 - the action-chunk queue: a chunk is sampled when the queue is empty and its first
   ``n_action_steps`` actions are executed in turn, as in training and evaluation;
 - its seeded sampling noise: each episode's DDIM noise comes from a generator seeded by the
@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from policy.diffusion_policy import DiffusionPolicy
-from policy.hand_back import HAND_BACK
+from policy.hand_back import HAND_BACK, RESUME
 from policy.inference import Inference, InferenceRequest, InferenceUnavailable, LocalInference
 from policy.signals.base import AssistanceSignal, SignalError
 from policy.uncertainty import UncertaintyBatch, UncertaintyResult
@@ -69,12 +69,13 @@ class Mode(StrEnum):
 @dataclass(frozen=True)
 class ControllerConfig:
     """hand_back: ``budgeted`` (``budget`` operator steps per assistance event) or ``continuous`` (until
-    the operator hands back); return_after: also hand back after this many consecutive operator steps
-    on which the asking signal no longer wants help (None: never automatically); cooldown: after a
-    hand-back, this many of the policy's steps on which the robot does not ask again (0: it may ask at
-    once; urgent requests excepted), so that a score that keeps re-triggering cannot flood the queue;
-    watchdog: a robot that has
-    used this fraction of its episode's horizon without success asks for help once, whatever its
+    the operator hands back); resume: after a hand-back the observation history restarts from the next
+    frame (``restart``) or keeps the takeover's frames (``history``, ``policy.hand_back.RESUME``);
+    return_after: also hand back after this many consecutive operator steps on which the asking signal
+    no longer wants help (None: never automatically); cooldown: after a hand-back, this many of the
+    policy's steps on which the robot does not ask again (0: it may ask at once; urgent requests
+    excepted), so that a score that keeps re-triggering cannot flood the queue; watchdog: a robot that
+    has used this fraction of its episode's horizon without success asks for help once, whatever its
     signal says (None: only the signal asks); assistance: False scores every signal but never asks
     (shadow runs); seed: the sampling noise's seed; batch_invariant: run the networks robot by robot,
     so that a robot's numbers do not depend, even in the last float bit, on which robots share its
@@ -84,6 +85,7 @@ class ControllerConfig:
     budget: int = 4
     return_after: int | None = None
     cooldown: int = 0
+    resume: Literal["restart", "history"] = "restart"
     watchdog: float | None = None
     assistance: bool = True
     seed: int = 0
@@ -98,6 +100,8 @@ class ControllerConfig:
             raise ValueError(f"return_after must be None or an integer >= 1, got {self.return_after!r}")
         if not (isinstance(self.cooldown, int) and not isinstance(self.cooldown, bool) and self.cooldown >= 0):
             raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
+        if self.resume not in RESUME:
+            raise ValueError(f"resume must be one of {RESUME}, got {self.resume!r}")
         if self.watchdog is not None and not (isinstance(self.watchdog, int | float) and 0 < self.watchdog < 1):
             # at the whole horizon the episode is over before the robot could ask
             raise ValueError(f"watchdog must be None or a fraction of the horizon in (0, 1), got {self.watchdog!r}")
@@ -227,12 +231,14 @@ class Controller:
             r.queue.clear()
 
     def release(self, robot_id: int) -> None:
-        """Control goes back to the policy, which restarts from the next frame with a fresh history and
-        does not ask again for ``config.cooldown`` steps."""
+        """Control goes back to the policy, which samples a fresh chunk at the next frame, from a fresh
+        history (``resume = "restart"``) or the one the takeover's frames left (``"history"``), and does
+        not ask again for ``config.cooldown`` steps."""
         r = self._robot(robot_id)
         r.mode, r.hold, r.teleop_left, r.calm = Mode.AUTONOMOUS, None, None, 0
         r.cooldown = self.config.cooldown
-        r.history.clear()
+        if self.config.resume == "restart":
+            r.history.clear()
         r.queue.clear()
 
     def teleop_left(self, robot_id: int) -> int | None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -29,6 +29,7 @@ from policy.mixing import MixedSampler
 from policy.train import TrainConfig, TrainState, train_policy
 from storage import keys
 from storage.dataset import DatasetConfig, load_dataset
+from storage.obs_layout import describe, mismatched, recorded
 from storage.takeovers import TakeoverSelection
 
 
@@ -123,6 +124,22 @@ class FinetuneDataError(ValueError):
     """The data for a fine-tuning run is missing or unusable; the message says what and where."""
 
 
+def check_layout(files: Iterable[tuple[str, dict]], info: dict, where: str | Path) -> None:
+    """Raises FinetuneDataError naming the episode files of ``where`` ((name, metadata) pairs) recorded
+    with another observation layout than the one the policy (its config.json ``info``) was trained on,
+    and the channels that differ. Files that record no layout, and a policy that records none, are left
+    to the size checks."""
+    labels = recorded(info)
+    other = mismatched(files, labels) if labels is not None else {}
+    if other:
+        shown = "; ".join(f"{name}: {why}" for name, why in list(other.items())[:3])
+        more = f"; and {len(other) - 3} more" if len(other) > 3 else ""
+        raise FinetuneDataError(
+            f"{len(other)} episode(s) of {where} were recorded with another observation layout than the policy's "
+            f"{describe(labels)}: {shown}{more}"
+        )
+
+
 MAX_LEFT_OUT = 0.05  # the share of named pretraining episodes a re-recording may lose (see pretraining_split)
 
 
@@ -175,6 +192,7 @@ def pretraining_split(policy: DiffusionPolicy, info: dict, folder: str | Path) -
             f"{len(missing)} of the policy's {len(named)} pretraining episodes are not in {folder}'s dataset (e.g. "
             f"{example}: {ds.excluded.get(example, 'no such file')}): is this the folder it was trained from?"
         )
+    check_layout([(n, ds.meta[index[n]]) for n in named if n in index], info, folder)
     if ds.obs.shape[1] != cfg.obs_dim:
         raise FinetuneDataError(f"{folder} holds {ds.obs.shape[1]}-dim observations, the policy takes {cfg.obs_dim}")
     train_names = [n for n in train_names if n in index]

@@ -6,4 +6,8 @@ names. A module of its own, with no import, so that reading the service's settin
 """
 
 HAND_BACK = ("budgeted", "continuous")  # the values of ``hand_back``
-HAND_BACK_FIELDS = ("hand_back", "budget", "return_after", "cooldown")
+# the values of ``resume``: what the policy sees first after a hand-back. ``restart``: a fresh observation
+# history, filled with the current frame; ``history``: the history as the takeover left it, so a policy that
+# sees several frames sees the operator's motion (a policy with an observation history of 1 sees the same)
+RESUME = ("restart", "history")
+HAND_BACK_FIELDS = ("hand_back", "budget", "return_after", "cooldown", "resume")

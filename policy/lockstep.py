@@ -47,6 +47,8 @@ class Outcome:
 
 # called for every robot and step before the action is applied: (robot id, task, the decision)
 StepHook = Callable[[int, Task, RobotStep], None]
+# called for every robot once its episode's task is reset, before its first step: (robot id, task)
+ResetHook = Callable[[int, Task], None]
 
 
 def run_lockstep(
@@ -58,6 +60,7 @@ def run_lockstep(
     operator: SimulatedOperator | None = None,
     progress: bool = True,
     desc: str = "",
+    on_reset: ResetHook | None = None,
 ) -> list[Outcome]:
     """One episode per seed; an episode ends as the fleet's do (``ends_episode``): at success or at the
     task's horizon (hold steps do not count), a timeout waiting for the operator's hand-back. The
@@ -81,6 +84,8 @@ def run_lockstep(
             for rid, task in wave.items():
                 task.reset(seeds[rid])
                 controller.reset(rid, seeds[rid])
+                if on_reset is not None:
+                    on_reset(rid, task)
                 frames[rid] = RobotFrame.from_task(task)
             while frames:
                 commands = {}

@@ -119,7 +119,7 @@ def collect(sessions: sessionmaker, data_dir: Path, query: ExportQuery, progress
             continue
         meta = {"fleet_episode": seg.episode_id, "policy": refs.get(seg.policy_id), "operator": seg.operator}
         attempt = from_segment(recorded, seg.id, label_of(seg), meta)
-        if seg.task in TASKS:  # a segment does not name its observation's parts; its task does
+        if not attempt.obs_labels and seg.task in TASKS:  # an older segment does not name its channels; its task does
             attempt.obs_labels = make_task(seg.task).obs_spec.labels()
         out.attempts.append(attempt)
     return out

@@ -27,7 +27,7 @@ ENV_PREFIX = "HITL_"
 # old setting name -> new (the controller's) name: the old names are accepted, with a FutureWarning, from a
 # TOML file, a HITL_<OLD> variable or a keyword until the next release; an old and a new name together are refused
 RENAMED = dict(
-    zip(("trigger_mode", "budget_steps", "auto_return_steps", "cooldown_steps"), HAND_BACK_FIELDS, strict=True)
+    zip(("trigger_mode", "budget_steps", "auto_return_steps", "cooldown_steps"), HAND_BACK_FIELDS[:4], strict=True)
 )
 
 
@@ -188,6 +188,11 @@ class Settings(BaseSettings):
         le=100_000,
         description="after a hand-back, policy steps on which the robot does not ask again (urgent requests excepted:"
         " the policy's next step would undo the takeover)",
+    )
+    resume: Literal["restart", "history"] = Field(
+        "restart",
+        description="after a hand-back, the policy's observation history restarts from the current frame ('restart') "
+        "or keeps the takeover's frames ('history': a policy that sees several frames sees the operator's motion)",
     )
     watchdog: float | None = Field(
         None,

@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from enum import StrEnum
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -45,6 +46,8 @@ LOOSE = (0.025, 0.3)
 RETRY_AFTER = 5
 STUCK_STEPS = 15
 STUCK_MOVED = 0.005
+# a carried cup whose bottom clears the red cup's rim by this much (m) goes on at its height (``from_here``)
+CARRY_CLEARANCE = 0.02
 # Gripper pointing down (grip-site z = world -z) at yaw 0. The Panda's fingers
 # close along the site's x axis, so a grasped bar lies along the site's y axis;
 # "yaw" is the heading of that y axis. At yaw 0 the fingers close along world y.
@@ -94,6 +97,28 @@ def closest_yaw(current: float, target: float, symmetry: float) -> float:
     return float(wrap_angle(target + k * symmetry))
 
 
+class OperatorStyle(StrEnum):
+    """How the simulated operator plans when a robot the policy moved comes back to it.
+
+    ``carry-on`` (default): as a person, with one way of working per episode: the plan's parameters
+    (speed, heights, pauses) are drawn once per episode, and each takeover picks the plan up from
+    where the robot stands (``Expert.resume``: the phases already done are skipped, ``from_here``
+    adapts the rest to the current pose). ``replan``: fresh random parameters at every request, as the
+    benchmarks' operator did before; on cup-stack it climbed back to a new carry height at each request
+    (docs/benchmarks/hitl.md)."""
+
+    CARRY_ON = "carry-on"
+    REPLAN = "replan"
+
+
+def operator_rng(style: OperatorStyle | str, episode_seed: int, request: int) -> np.random.Generator:
+    """The randomness of the simulated operator's plan at its ``request``-th takeover (from 1) of the
+    episode seeded ``episode_seed``: the same for every request of an episode in ``carry-on`` style, a
+    fresh draw per request in ``replan`` style. The first request draws the same plan in both."""
+    style = OperatorStyle(style)
+    return np.random.default_rng([int(episode_seed), 1 if style == OperatorStyle.CARRY_ON else int(request)])
+
+
 class Expert:
     """Runs a list of phases, built per episode by ``plan``.
 
@@ -119,6 +144,7 @@ class Expert:
         self._rng: np.random.Generator | None = None
         self._ended = 0  # steps commanded since the plan ran to its end
         self._trail: deque = deque(maxlen=STUCK_STEPS)  # the end effector's last positions (retry only)
+        self.style = OperatorStyle.CARRY_ON  # how it plans at a takeover (``take_over``)
 
     def plan(self, task: Task, rng: np.random.Generator) -> list[Phase]:
         raise NotImplementedError
@@ -129,6 +155,11 @@ class Expert:
         self._i, self._steps_in_phase, self._pause_left, self._ended = 0, 0, 0, 0
         self._rng = rng
         self._trail.clear()
+
+    def take_over(self, task: Task, episode_seed: int, request: int, carry_on: bool = False) -> None:
+        """The simulated operator's ``request``-th takeover (from 1) in the episode seeded ``episode_seed``:
+        ``resume`` with its plan's randomness drawn as its ``style`` does (``operator_rng``)."""
+        self.resume(task, operator_rng(self.style, episode_seed, request), carry_on)
 
     def resume(self, task: Task, rng: np.random.Generator, carry_on: bool = False) -> None:
         """Takes over mid-episode: plans as ``reset`` does, then skips the phases whose work the scene
@@ -302,7 +333,7 @@ class CupStackExpert(Expert):
 
     def plan(self, task: Task, rng: np.random.Generator) -> list[Phase]:
         approach_h = float(rng.uniform(0.05, 0.12))
-        carry_z = task.privileged()["table_z"] + float(rng.uniform(0.17, 0.22))
+        self._carry_z = task.privileged()["table_z"] + float(rng.uniform(0.17, 0.22))
         release_gap = float(rng.uniform(0.006, 0.012))
         retreat = float(rng.uniform(0.06, 0.10))
         mem: dict[str, np.ndarray] = {}
@@ -315,7 +346,7 @@ class CupStackExpert(Expert):
 
         def lift(t: Task):
             p = mem.setdefault("grasp", t.ee_pose()[0])
-            return np.array([p[0], p[1], carry_z]), None
+            return np.array([p[0], p[1], self._carry_z]), None
 
         def _offset(t: Task) -> np.ndarray:
             s = t.privileged()
@@ -324,7 +355,7 @@ class CupStackExpert(Expert):
         def over_red(t: Task):
             s = t.privileged()
             target = s["red_pos"] + _offset(t)
-            return np.array([target[0], target[1], carry_z]), None
+            return np.array([target[0], target[1], self._carry_z]), None
 
         def lower(t: Task):
             s = t.privileged()
@@ -348,6 +379,15 @@ class CupStackExpert(Expert):
             Phase("release", hold, OPEN, tol=np.inf, pause=int(rng.integers(5, 8))),
             Phase("retreat", retreat_up, OPEN, tol=0.01),
         ]
+
+    def from_here(self, task: Task) -> None:
+        """In ``carry-on`` style, a cup taken over while carried goes on at the height it is carried at, when
+        its bottom clears the red cup's rim by ``CARRY_CLEARANCE``, as a person steering a carried cup
+        would, instead of climbing to the plan's carry height first."""
+        s = task.privileged()
+        clear = s["green_bottom_z"] > s["red_rim_z"] + CARRY_CLEARANCE
+        if self.style == OperatorStyle.CARRY_ON and self.holding(task) and clear:
+            self._carry_z = float(task.ee_pose()[0][2])
 
     def holding(self, task: Task) -> bool:
         """The gripper closed and the green cup 2 cm off the table (carried)."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from sim.env import Task
-from sim.experts import CupStackExpert, Expert, LiftExpert, OpenDrawerExpert
+from sim.experts import CupStackExpert, Expert, LiftExpert, OpenDrawerExpert, OperatorStyle
 from sim.tasks.cup_stack import CupStackTask
 from sim.tasks.lift import LiftTask
 from sim.tasks.open_drawer import OpenDrawerTask
@@ -39,10 +39,12 @@ def make_task(name: str) -> Task:
     return TASKS[name]()
 
 
-def make_expert(name: str, retry: bool = False) -> Expert:
+def make_expert(name: str, retry: bool = False, style: OperatorStyle | str = OperatorStyle.CARRY_ON) -> Expert:
     """The task's scripted expert; ``retry``: as the simulated operator, which tries again when a plan
-    ends without success (``Expert.retry``; demonstrations are recorded without)."""
+    ends without success (``Expert.retry``; demonstrations are recorded without); ``style``: how it
+    plans at takeovers (``Expert.take_over``)."""
     _check(name)
     expert = EXPERTS[name]()
     expert.retry = retry
+    expert.style = OperatorStyle(style)
     return expert

@@ -32,6 +32,10 @@ SOURCE_OPERATOR = "operator"  # human (or simulated human) takeover
 SOURCE_HOLD = "hold"  # the service holding the pose (waiting for an operator, paused)
 SOURCES = (SOURCE_EXPERT, SOURCE_POLICY, SOURCE_OPERATOR, SOURCE_HOLD)
 
+# the observation's channel names, in order (``sim.env.ObsSpec.labels``; ``storage.obs_layout``): in the
+# metadata of episodes and takeover segments, and in a policy's config.json (the layout it was trained on)
+OBS_LABELS = "obs_labels"
+
 # -- MCAP ------------------------------------------------------------------------
 MCAP_PROFILE = "hitl"
 TOPIC_EPISODE = "/episode"  # once, first: task, seed, expert, object, specs

@@ -1,5 +1,9 @@
 """Takeover segments: one MCAP file per operator takeover, the fine-tuning data of the product.
 
+Once, first (``/takeover``, and the file's ``takeover`` metadata): what the writer is given, in the
+service the robot, episode, serving policy version, operator, task, reason and asking signal, and
+``keys.OBS_LABELS``, the observation's channel names in order (segments written before it was recorded
+lack it; fine-tuning then judges their observations by size alone, ``storage.takeovers``).
 Per step (``/takeover/step``, with the step field names of ``storage.keys`` that episodes use
 too): the observation, the operator's command, the resulting absolute
 action and the same action in the policy's normalized action space (the fine-tune label), U and

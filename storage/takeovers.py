@@ -7,9 +7,11 @@ is the serving version's and is not used). Each segment is one contiguous sequen
 demonstration episode (``storage.dataset``): histories padded with the first observation, chunks
 with the last action.
 
-A segment that cannot be used (unreadable, truncated, empty, wrong dimensions, non-finite values) is
-skipped, and ``TakeoverSet.skipped`` names it with the reason: the caller reports it, nothing fails
-silently.
+A segment that cannot be used (unreadable, truncated, empty, wrong dimensions, recorded with another
+observation layout than the policy's, non-finite values) is skipped, and ``TakeoverSet.skipped`` names it
+with the reason: the caller reports it, nothing fails silently. A segment of another layout is left out,
+not fatal: a lineage keeps the segments of its earlier versions, and those of a layout since changed
+must not stop every later job; the job fails when no usable segment is left, naming them.
 
 ``TakeoverSelection`` says which takeovers and steps to learn from: only takeovers whose episode ended
 in success (``successful_only``: the operator's help led somewhere; the caller, which knows the
@@ -26,6 +28,7 @@ import numpy as np
 
 from storage import keys
 from storage.dataset import DatasetConfig, DemoDataset
+from storage.obs_layout import describe, difference, recorded
 from storage.segments import SegmentReadError, read_segment
 
 ACTION_DIM = 10
@@ -96,8 +99,17 @@ class TakeoverSet:
         return ds.arrays("all")
 
 
-def _steps(path: Path, obs_dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _steps(path: Path, obs_dim: int, obs_labels: list[str] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     seg = read_segment(path)  # closed and recovered segments are complete files
+    if (
+        obs_labels is not None
+        and (labels := recorded(seg.meta)) is not None
+        and (diff := difference(obs_labels, labels))
+    ):
+        where = f"task {seg.meta.get('task', '?')}, observations {describe(labels)}"
+        raise SegmentReadError(
+            path, f"recorded with another observation layout than the policy's ({where}): " + "; ".join(diff)
+        )
     if seg.end is None:
         raise SegmentReadError(path, "no /takeover/end message: the segment is still open")
     steps = seg.steps  # a step without the fields every step has: SegmentReadError (malformed step)
@@ -120,15 +132,23 @@ def _steps(path: Path, obs_dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return obs, act, pose
 
 
-def load_takeovers(paths: list[Path], obs_dim: int, selection: TakeoverSelection | None = None) -> TakeoverSet:
+def load_takeovers(
+    paths: list[Path],
+    obs_dim: int,
+    selection: TakeoverSelection | None = None,
+    obs_labels: list[str] | None = None,
+) -> TakeoverSet:
     """Reads every segment in ``paths`` (in order); unusable ones are listed in ``skipped``. Of each
-    usable one the steps ``selection`` keeps (its tail; which segments to pass is the caller's)."""
+    usable one the steps ``selection`` keeps (its tail; which segments to pass is the caller's).
+    ``obs_labels``: the observation layout the policy takes (``storage.obs_layout``); a segment recorded
+    with another one is unusable, its reason naming the channels that differ (one that records none,
+    written before segments did, is judged by its observations' size alone)."""
     selection = selection or TakeoverSelection()
     obs, act, pose, ends, used, skipped = [], [], [], [], [], {}
     for path in paths:
         path = Path(path)
         try:
-            o, a, p = _steps(path, obs_dim)
+            o, a, p = _steps(path, obs_dim, obs_labels)
         except SegmentReadError as exc:
             skipped[path.name] = exc.reason
             continue

@@ -60,11 +60,13 @@ def save_tiny_signals(policy, folder, threshold: float, info: dict | None = None
     save_signal(default, folder, info)
 
 
-def tiny_policy_folder(folder, task: str, threshold: float):
+def tiny_policy_folder(folder, task: str, threshold: float, obs_labels: list[str] | None = None):
     """``tiny_policy`` saved as a policy folder with ``threshold`` as its calibration, for ``denoising``
-    (calibration.json), ``spread`` and ``spread-stall`` (``save_tiny_signals``)."""
+    (calibration.json), ``spread`` and ``spread-stall`` (``save_tiny_signals``). ``obs_labels``: the
+    observation layout its config.json records (``hitl train`` records the task's); None: none, as
+    checkpoints written before layouts were recorded."""
     policy = tiny_policy(task)
-    save_policy(policy, folder, {"task": task})
+    save_policy(policy, folder, {"task": task} | ({"obs_labels": obs_labels} if obs_labels is not None else {}))
     save_calibration(folder, {"threshold": threshold, "quantile": 0.95, "samples": 0})
     save_tiny_signals(policy, folder, threshold, {"command": "tests.helpers.tiny_policy_folder"})
     return folder
@@ -192,10 +194,11 @@ class KinematicTask:
         self.closed = True
 
 
-def finetunable_policy_folder(root, task: str = "lift-cube"):
+def finetunable_policy_folder(root, task: str = "lift-cube", obs_labels: list[str] | None = None):
     """``tiny_policy`` as a policy folder a fine-tuning job can use: pretrained (on paper) on 5 synthetic
     episodes under ``root/demos`` (4 training, 1 validation, as its config.json says), with a
-    calibration and the signals of ``save_tiny_signals`` to recalibrate."""
+    calibration and the signals of ``save_tiny_signals`` to recalibrate. ``obs_labels``: the observation
+    layout its config.json and its episodes record (None: none, as before layouts were recorded)."""
     from storage import keys
     from storage.episodes import EpisodeWriter
 
@@ -203,7 +206,8 @@ def finetunable_policy_folder(root, task: str = "lift-cube"):
     demos = root / "demos"
     rng = np.random.default_rng(1)
     for i in range(5):
-        w = EpisodeWriter(demos / f"{task}_seed{i:06d}.mcap", {"task": task, "seed": i}, object_names=[])
+        meta = {"task": task, "seed": i} | ({"obs_labels": obs_labels} if obs_labels is not None else {})
+        w = EpisodeWriter(demos / f"{task}_seed{i:06d}.mcap", meta, object_names=[])
         for t in range(6):
             act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [-1.0]]
             w.write_step(
@@ -222,7 +226,8 @@ def finetunable_policy_folder(root, task: str = "lift-cube"):
     folder = root / "policies" / task
     names = sorted(p.name for p in demos.glob("*.mcap"))
     dataset = {"folder": str(demos), "train_episodes": names[:4], "val_episodes": names[4:]}
-    save_policy(policy, folder, {"task": task, "dataset": dataset, "command": "tests.helpers"})
+    info = {"task": task, "dataset": dataset, "command": "tests.helpers"}
+    save_policy(policy, folder, info | ({"obs_labels": obs_labels} if obs_labels is not None else {}))
     save_calibration(
         folder, {"threshold": 1e9, "quantile": 0.95, "samples": 0, "uncertainty": {"num_samples": 16, "max_modes": 2}}
     )
@@ -230,12 +235,16 @@ def finetunable_policy_folder(root, task: str = "lift-cube"):
     return folder
 
 
-def write_segment(path, obs_dim: int, steps: int = 5, seed: int = 0, task: str = "lift-nut"):
-    """A closed takeover segment of ``steps`` random (observation, absolute action) pairs."""
+def write_segment(
+    path, obs_dim: int, steps: int = 5, seed: int = 0, task: str = "lift-nut", obs_labels: list[str] | None = None
+):
+    """A closed takeover segment of ``steps`` random (observation, absolute action) pairs; ``obs_labels``:
+    the observation layout its metadata records, as the fleet's do (None: none, as older segments)."""
     from storage.segments import SegmentWriter
 
     rng = np.random.default_rng(seed)
-    w = SegmentWriter(path, {"robot": 0, "task": task, "operator": "op"})
+    meta = {"robot": 0, "task": task, "operator": "op"} | ({"obs_labels": obs_labels} if obs_labels is not None else {})
+    w = SegmentWriter(path, meta)
     for _ in range(steps):
         act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [1.0]]
         w.write_step(rng.normal(size=obs_dim), {"dpos": [0, 0, 0.01]}, act, act, act[:3], [0, 0, 0, 1.0], 0.1)

@@ -33,7 +33,7 @@ import numpy as np
 from tqdm import tqdm
 
 from policy.assisted import AssistConfig, run_assisted
-from policy.checkpoint import load_policy, read_info
+from policy.checkpoint import check_fits, load_policy, read_info
 from policy.finetune import FinetuneConfig, TaskResult, evaluate_episodes, finetune_policy, pretraining_split
 from storage import keys
 from storage.paths import resolve
@@ -346,6 +346,8 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     parent, info = load_policy(cfg.policy)
+    for task in dict.fromkeys([cfg.train_task, *cfg.unseen]):
+        check_fits(info, task, cfg.policy)
     if cfg.stride > 1 and (parent.config.obs_horizon > 1 or parent.config.action_horizon > 1):
         raise ValueError(f"stride {cfg.stride} needs a policy with observation and action horizons of 1")
     pre_train = pretraining_split(parent, info, resolve(info["dataset"]["folder"])).train

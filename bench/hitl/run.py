@@ -218,12 +218,13 @@ def run_cell(cell: Cell, threads: int | None = 1) -> dict:
     import torch
 
     from policy.assisted import AssistConfig, run_assisted
-    from policy.checkpoint import load_policy
+    from policy.checkpoint import check_fits, load_policy
     from policy.signals import SignalError
 
     if threads:
         torch.set_num_threads(threads)
-    policy, _ = load_policy(cell.policy)
+    policy, info = load_policy(cell.policy)
+    check_fits(info, cell.task, cell.policy)
     cfg = AssistConfig(hand_back="budgeted", budget=cell.budget, n_envs=cell.envs)
     seeds = list(cell.seeds)
     if cell.kind == "shadow":

@@ -26,12 +26,13 @@ import torch
 from sqlalchemy import select
 from sqlalchemy.orm import sessionmaker
 
-from policy.checkpoint import load_calibration, load_policy, read_info, save_calibration, save_policy
+from policy.checkpoint import check_fits, load_calibration, load_policy, read_info, save_calibration, save_policy
 from policy.finetune import (
     FinetuneConfig,
     FinetuneDataError,
     GateDecision,
     TaskResult,
+    check_layout,
     evaluate,
     finetune_policy,
     fit_threshold_on_own_episodes,
@@ -46,6 +47,7 @@ from server.finetune.plan import JobRequest, Plan, select_segments
 from sim.demos import DemoRecipe, ensure_demos
 from storage import keys, paths
 from storage.dataset import DatasetConfig, load_dataset
+from storage.obs_layout import recorded
 from storage.paths import in_store
 from storage.takeovers import load_takeovers
 
@@ -190,11 +192,13 @@ class JobRun:
 
     def collect_data(self) -> JobData:
         """The new samples: the episodes of ``--source full-episodes``, or the selected takeover segments
-        (those left out, waiting or unreadable reported); recorded in the job's row. FinetuneDataError
-        when no usable sample is left."""
+        (those left out, waiting, unreadable or of another observation layout reported); recorded in the job's
+        row. FinetuneDataError when no usable sample is left or the episodes are of another observation layout
+        than the parent's; CheckpointError when the parent cannot run a task the gate evaluates it on."""
         plan, cfg, pc = self.plan, self.cfg, self.parent.config
         if plan.episodes is not None:
             ds = load_dataset(plan.episodes, DatasetConfig(pc.obs_horizon, pc.action_horizon, val_fraction=0.0))
+            check_layout(zip(ds.names, ds.meta, strict=True), self.info, plan.episodes)
             if ds.obs.shape[1] != pc.obs_dim:
                 raise FinetuneDataError(
                     f"{plan.episodes}: {ds.obs.shape[1]}-dim observations, policy takes {pc.obs_dim}"
@@ -211,7 +215,8 @@ class JobRun:
                 self.report(f"job {self.id}: left out segment {name}: {why}")
             for seg in waiting:
                 self.report(f"job {self.id}: segment {Path(seg.path).name} waits for its episode to end")
-            takeovers = load_takeovers([in_store(self.data_dir, s.path) for s in selected], pc.obs_dim, cfg.selection)
+            files = [in_store(self.data_dir, s.path) for s in selected]
+            takeovers = load_takeovers(files, pc.obs_dim, cfg.selection, recorded(self.info))
             for name, why in takeovers.skipped.items():
                 self.report(f"job {self.id}: skipped segment {name}: {why}")
             fresh = takeovers.arrays(pc.obs_horizon, pc.action_horizon)
@@ -255,6 +260,9 @@ class JobRun:
                 + "; ".join(f"{k}: {v}" for k, v in list((skipped | excluded).items())[:5])
                 + ")"
             )
+        train_task, targets = self._tasks(tasks)
+        for task in dict.fromkeys([train_task, *targets]):  # before training: the gate rolls it out on each
+            check_fits(self.info, task, self.plan.parent.ref)
         return JobData(fresh, tasks, manifest_new, counts, skipped, excluded)
 
     def train(self, data: JobData) -> Trained:
@@ -324,11 +332,11 @@ class JobRun:
         save_policy(trained.policy, out, child_info)
         return Candidate(out, child_info, manifest)
 
-    def _tasks(self, data: JobData) -> tuple[str, list[str]]:
+    def _tasks(self, data_tasks: list[str]) -> tuple[str, list[str]]:
         """The lineage's training task, and the target tasks the gate compares on: those named for the
         run or the lineage, else the tasks its takeovers came from."""
         train_task = self.info.get("task") or self.plan.parent.task
-        targets = self.request.eval_tasks or self.eval_tasks.get(self.plan.lineage) or data.tasks or [train_task]
+        targets = self.request.eval_tasks or self.eval_tasks.get(self.plan.lineage) or data_tasks or [train_task]
         return train_task, list(targets)
 
     def recalibrate(self, job_data: JobData, trained: Trained, candidate: Candidate) -> dict:
@@ -349,7 +357,7 @@ class JobRun:
         record = calibrate(child, info, data, self.cfg.quantile, ucfg, progress=self.progress).to_dict()
         save_calibration(out, record)
         carried, dropped, fitted = [], {}, {}
-        cfg, (train_task, targets) = self.cfg, self._tasks(job_data)
+        cfg, (train_task, targets) = self.cfg, self._tasks(job_data.tasks)
         signals = parent_dir / "signals"
         for folder in sorted(signals.iterdir()) if signals.is_dir() else []:
             try:
@@ -379,7 +387,7 @@ class JobRun:
         """Parent and candidate through the one controller on the same seeds, on the training task and the
         target tasks, and the promotion gate's decision."""
         cfg = self.cfg
-        train_task, targets = self._tasks(data)
+        train_task, targets = self._tasks(data.tasks)
         all_tasks = list(dict.fromkeys([train_task, *targets]))
         self._update(stage="evaluate", progress=0.8)
         parent_eval = self._parent_eval(all_tasks)

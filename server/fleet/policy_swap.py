@@ -22,7 +22,7 @@ from pathlib import Path
 
 from sqlalchemy.orm import sessionmaker
 
-from policy.checkpoint import CheckpointError, read_info
+from policy.checkpoint import CheckpointError, check_fits, read_info
 from server import registry
 from server.db import PolicyVersion
 from server.errors import ServiceError
@@ -126,12 +126,11 @@ class PolicySwap:
         # the request conflicts with what the folder holds (409), which no schema of the request can say
         if task is None:
             raise ServiceError(409, f"{key}/config.json names no task: give one")
-        obs_dim = info.get("policy", {}).get("obs_dim")
-        spec = _task_spec(task)
-        if obs_dim != spec.obs_spec.dim:
-            raise ServiceError(
-                409, f"policy {key} expects {obs_dim}-dim observations, {task} gives {spec.obs_spec.dim}"
-            )
+        _task_spec(task)  # 422: no such task
+        try:
+            check_fits(info, task, key)
+        except CheckpointError as exc:
+            raise ServiceError(409, str(exc)) from exc
         return registry.register(self.sessions, key, task, parent=parent, command=info.get("command")).id
 
     def lineages(self, max_age: float = 5.0) -> tuple[registry.LineageSummary, ...]:
@@ -174,16 +173,17 @@ class PolicySwap:
 
     def _load(self, row: PolicyVersion) -> PolicySlot:
         """The slot of a version (slow: no fleet lock), its threshold recorded; ServiceError 422 when it
-        cannot drive every robot of its lineage (another observation size)."""
+        cannot drive every robot of its lineage (``policy.checkpoint.check_fits``: another observation
+        layout, action size or a chunking longer than a task's horizon)."""
         with self.lock:
             tasks = {r.task for r in self.robots.values() if r.slot.lineage == row.name}
-        wanted = (_policy_info(registry.folder(row)).get("policy") or {}).get("obs_dim") if tasks else None
+        info = _policy_info(registry.folder(row)) if tasks else {}
         for task in sorted(tasks):
-            dim = _task_spec(task).obs_spec.dim
-            if wanted != dim:
-                raise ServiceError(
-                    422, f"policy {row.ref} expects {wanted}-dim observations, its lineage's {task} robots give {dim}"
-                )
+            _task_spec(task)
+            try:
+                check_fits(info, task, row.ref)
+            except CheckpointError as exc:
+                raise ServiceError(422, f"{exc} (its lineage's {task} robots)") from exc
         slot = self.slots.get(row.id) or load_slot(self.settings, registry.folder(row), row.task, row.id, row.name)
         with self.sessions() as s:
             s.get(PolicyVersion, row.id).threshold = slot.threshold

@@ -226,7 +226,9 @@ class Recorder:
             "signal": (asking := robot.slot.controller.asking),
             "threshold": None if asking is None else float(robot.slot.controller.signals[asking].threshold),
         }
-        rec.takeover = SegmentWriter(path, meta, self.segment_flush_seconds, self.segment_fsync)
+        # the file names its observation's channels (what fine-tuning checks against the policy's); the row does not
+        labels = {keys.OBS_LABELS: make_task(robot.task).obs_spec.labels()}
+        rec.takeover = SegmentWriter(path, meta | labels, self.segment_flush_seconds, self.segment_fsync)
         with self.sessions() as s:
             row = SegmentRecord(
                 robot_id=robot.id,

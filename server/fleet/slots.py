@@ -11,7 +11,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from policy.checkpoint import CheckpointError, load_calibration, load_policy
+from policy.checkpoint import CheckpointError, check_fits, load_calibration, load_policy
 from policy.controller import Controller, ControllerConfig
 from policy.devices import prepare_for_serving
 from policy.diffusion_policy import DiffusionPolicy
@@ -55,16 +55,20 @@ def controller_config(settings: Settings) -> ControllerConfig:
 
 
 def load_slot(settings: Settings, path: Path, task: str, version: int, lineage: str = "") -> PolicySlot:
-    """The policy folder ``path`` ready to serve ``task`` (ServiceError 422 naming what is wrong)."""
+    """The policy folder ``path`` ready to serve ``task`` (ServiceError 422 naming what is wrong: a folder
+    that cannot be read, a checkpoint that cannot run the task, ``policy.checkpoint.check_fits``, a device
+    this machine lacks, a signal that is not ready)."""
     try:
-        policy, _ = load_policy(path)
+        policy, info = load_policy(path)
     except CheckpointError as exc:
         raise ServiceError(422, f"policy {path}: {exc}") from exc
+    try:
+        check_fits(info, task, path)  # its observation layout, action size and chunking against the task's
+    except CheckpointError as exc:
+        raise ServiceError(422, str(exc)) from exc
+    except KeyError as exc:  # no such task
+        raise ServiceError(422, exc.args[0]) from exc
     spec = make_task(task)
-    if policy.config.obs_dim != spec.obs_spec.dim:
-        raise ServiceError(
-            422, f"policy {path} expects {policy.config.obs_dim}-dim observations, {task} gives {spec.obs_spec.dim}"
-        )
     try:
         prepare_for_serving(policy, settings.device, settings.trace_policies)
     except ValueError as exc:  # this machine lacks the device

@@ -124,6 +124,7 @@ class CupStackTask(Task):
             "green_grasp_point": green + [0, 0, GREEN.half_height - 0.025],
             "green_bottom_z": green[2] - GREEN.half_height,
             "red_floor_z": red[2] - RED.half_height + RED.bottom,
+            "red_rim_z": red[2] + RED.half_height,
             "red_visible": self._red_visible(),
             "table_z": TABLE_TOP_Z,
         }

@@ -158,6 +158,7 @@ def from_segment(
         threshold=np.full(n, float(threshold) if threshold is not None else 0.0),
         policy_version=np.full(n, int(seg.meta.get("policy_version") or 0), np.int64),
         takeover=np.full(n, segment_id, np.int64),
+        obs_labels=list(seg.meta.get(keys.OBS_LABELS) or []),  # segments written before they recorded it: none
         meta={"seed": seg.meta.get("seed"), "robot": seg.meta.get("robot"), "episode": seg.meta.get("episode")}
         | (meta or {}),
         takeovers={segment_id: label or TakeoverLabel()},

@@ -1,11 +1,13 @@
 """A LeRobotDataset (v3.0 layout) as demonstrations: MCAP episodes as ``hitl demos`` writes them.
 
-The dataset's ``observation.state`` must be the task's observation (same size, and the same names when
-the dataset names them) and its ``action`` our absolute end-effector action (same size and names).
+The dataset's ``observation.state`` must be the task's observation (same size, and the same channel
+names in the same order when the dataset names them) and its ``action`` our absolute end-effector action
+(same size and names).
 ``observation.ee_pose`` (position + quaternion xyzw) is used when present, else the caller's
 ``pose_from_state`` computes it from the state (``hitl import``: from its ``eef_pos`` and
 ``eef_rot6d``). ``next.success``, ``action_source`` and ``observation.gripper`` are used when present.
-An incompatible dataset is refused before anything is written, with every mismatched feature named.
+An incompatible dataset is refused before anything is written, with every mismatched feature named, and
+where the dataset names its channels, the channels it lacks or has beyond the task's.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from storage.lerobot.layout import (
     STATE,
     SUCCESS,
 )
+from storage.obs_layout import describe, difference
 
 
 class LeRobotImportError(Exception):
@@ -86,19 +89,24 @@ def _names(feature: dict) -> list[str] | None:
 def check_compatible(
     info: dict, obs_labels: list[str], action_labels: list[str], can_compute_pose: bool = False
 ) -> list[str]:
-    """Every way the dataset's state and action layout differs from the task's (empty: compatible)."""
+    """Every way the dataset's state and action layout differs from the task's (empty: compatible): a
+    feature's size, and where the dataset names its channels, those it lacks, those the task does not
+    have and a different order, by name."""
     feats, problems = info["features"], []
     for name, labels in ((STATE, obs_labels), (ACTION, action_labels)):
         f = feats.get(name)
         if f is None:
             problems.append(f"{name}: missing (the dataset has {', '.join(sorted(feats)) or 'no features'})")
             continue
+        wrong, names = [], _names(f)
         if _shape(f) != [len(labels)]:
-            problems.append(f"{name}: shape {_shape(f)}, the task's is [{len(labels)}]")
-            continue
-        if (names := _names(f)) is not None and names != labels:
-            wrong = [f"{i}: {a!r} != {b!r}" for i, (a, b) in enumerate(zip(names, labels, strict=True)) if a != b]
-            problems.append(f"{name}: names differ from the task's at {'; '.join(wrong[:6])}")
+            wrong.append(f"shape {_shape(f)}, the task's is [{len(labels)}]")
+        if names is not None:  # what differs, by channel name (storage.obs_layout)
+            wrong += difference(labels, names)
+        elif wrong:
+            wrong.append(f"its channels are not named; the task's are {describe(labels)}")
+        if wrong:
+            problems.append(f"{name}: " + "; ".join(wrong))
     if EE_POSE in feats and _shape(feats[EE_POSE]) != [7]:
         problems.append(f"{EE_POSE}: shape {_shape(feats[EE_POSE])}, expected [7] (position + quaternion xyzw)")
     if EE_POSE not in feats and not can_compute_pose:

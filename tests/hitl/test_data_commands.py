@@ -10,6 +10,7 @@ import numpy as np
 
 from hitl.cli import main
 from policy.checkpoint import load_policy
+from sim.registry import make_task
 from storage.episodes import read_episode
 
 
@@ -42,10 +43,20 @@ def test_a_demo_run_exports_loads_imports_and_trains(tmp_path, capsys):
     assert main(["train", "--task", "lift-cube", "--data", str(back), "--out", str(out), *small]) == 0
     policy, doc = load_policy(out)
     assert policy.config.obs_dim == originals[0].obs.shape[1]
+    assert doc["obs_labels"] == make_task("lift-cube").obs_spec.labels()  # the layout it was trained on
     assert sorted(doc["dataset"]["train_episodes"] + doc["dataset"]["val_episodes"]) == sorted(
         p.name for p in back.glob("*.mcap")
     )
 
     # the task's layout is checked: another task's observation is refused, naming the feature
     assert main(["import", "lerobot", str(root), str(tmp_path / "x"), "--task", "open-drawer", "--quiet"]) == 2
-    assert "observation.state: shape" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "does not fit task open-drawer" in err and "observation.state: shape [26], the task's is [23]" in err
+    assert "missing drawer_opening, handle_pos; extra object_pos, object_rot6d, object_to_eef_pos, object_extent" in err
+    assert not (tmp_path / "x").exists()
+
+    # a policy is not run on a task whose observation it was not trained on, and the error names the channels
+    assert main(["rollout", "--policy", str(out), "--task", "open-drawer", "--episodes", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"hitl rollout: error: policy {out} cannot run task open-drawer: it was trained on")
+    assert "missing object_pos, object_rot6d, object_to_eef_pos, object_extent; extra drawer_opening" in err

@@ -45,11 +45,12 @@ class Scripted:
         return np.array([rid in self.now for rid in state.robot_ids])
 
 
-def _chunked(horizon=4, steps=2):
+def _chunked(horizon=4, steps=2, history=1):
     torch.manual_seed(0)
     p = DiffusionPolicy(
         DiffusionPolicyConfig(
             obs_dim=LIFT_OBS.dim,
+            obs_horizon=history,
             action_horizon=horizon,
             n_action_steps=steps,
             network="mlp",
@@ -162,6 +163,34 @@ def test_asking_holding_a_budgeted_takeover_and_a_fresh_history_on_hand_back():
     assert back.source == keys.SOURCE_POLICY
     assert back.obs.shape == (1, LIFT_OBS.dim) and np.allclose(back.obs[0], frames[0].obs)  # a fresh history
     assert any(t.any() for t in signal.seen_teleop)  # the trigger rule saw the teleop flags
+
+
+@pytest.mark.parametrize("resume", ["restart", "history"])
+def test_after_a_hand_back_the_history_restarts_or_keeps_the_takeovers_frames(resume):
+    """A policy that sees 2 frames: on a plain restart both are the frame it resumes on; with
+    ``resume = "history"`` the first is the frame of the operator's last step, so it sees the motion."""
+    policy, signal = _chunked(horizon=4, steps=2, history=2), Scripted()
+    config = ControllerConfig(budget=2, resume=resume)
+    controller = Controller(policy, {"scripted": signal}, "scripted", KinematicTask().action_space, config)
+    controller.reset(0, seed=1)
+    tasks = _tasks({0: 1})
+    frames = _frames(tasks)
+    controller.ask(0, frames[0].hold)
+    controller.take_over(0)
+    up = TeleopCommand((0.0, 0.0, 0.01), (0.0, 0.0, 0.0), 1.0)
+    seen = []
+    for _ in range(2):  # the budget: two operator steps, each moving the robot up 1 cm
+        step = controller.step(frames, {0: up})[0]
+        seen.append(frames[0].obs)
+        frames = _frames(tasks, {0: tasks[0].step(step.action)})
+    assert step.returned
+    back = controller.step(frames)[0]
+    assert back.source == keys.SOURCE_POLICY and back.obs.shape == (2, LIFT_OBS.dim)
+    np.testing.assert_allclose(back.obs[1], frames[0].obs)
+    np.testing.assert_allclose(back.obs[0], frames[0].obs if resume == "restart" else seen[-1])
+    assert not np.allclose(seen[-1], frames[0].obs)  # the operator's step moved the robot
+    with pytest.raises(ValueError, match="resume"):
+        ControllerConfig(resume="rewind")
 
 
 @pytest.mark.parametrize("return_after", [None, 1])

@@ -197,3 +197,29 @@ def test_the_segment_reader_windows_each_segment_and_names_what_it_skips(tmp_pat
     assert arrays[keys.OBS][3, :, 0].tolist() == [0, 0]
     # the label is the absolute action the operator's command produced, not the serving version's normalized one
     assert arrays[keys.ACTION][1, 0].tolist() == pytest.approx([0.01, 0, 0.9, 0, 1, 0, 1, 0, 0, 1])
+
+
+def test_pretraining_episodes_of_another_observation_layout_are_refused_naming_them(tmp_path):
+    import json
+
+    from policy.checkpoint import load_policy
+    from policy.finetune import pretraining_split
+    from sim.registry import make_task
+    from tests.helpers import finetunable_policy_folder
+
+    labels = make_task("lift-cube").obs_spec.labels()
+    folder = finetunable_policy_folder(tmp_path, "lift-cube", obs_labels=labels)
+    policy, info = load_policy(folder)
+    assert len(pretraining_split(policy, info, tmp_path / "demos").train_names) == 4
+    # the same episodes, as if the task's observation had changed since the policy was trained
+    moved = labels[:11] + labels[23:] + labels[11:23]
+    config = folder / "config.json"
+    config.write_text(json.dumps(json.loads(config.read_text()) | {"obs_labels": moved}))
+    policy, info = load_policy(folder)
+    with pytest.raises(FinetuneDataError) as err:
+        pretraining_split(policy, info, tmp_path / "demos")
+    message = str(err.value)
+    assert message.startswith(f"5 episode(s) of {tmp_path / 'demos'} were recorded with another observation layout")
+    assert "lift-cube_seed000000.mcap: recorded with another observation layout ([eef_pos(3)" in message
+    assert "the same channels in another order (at channel 11: object_pos, not object_extent)" in message
+    assert message.endswith("; and 2 more")  # three named, the rest counted

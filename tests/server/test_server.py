@@ -15,6 +15,7 @@ from policy.signals import make_signal, save_signal
 from server.auth import create_token
 from server.db import make_engine, migrate, session_factory
 from server.settings import RobotGroup, Settings
+from sim.registry import make_task
 from storage.segments import read_segment
 from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
 
@@ -128,6 +129,8 @@ def test_takeover_round_trip_records_a_segment(service):
     obs, labels = segment.labels()
     assert obs.shape[0] == labels.shape[0] == 3 and np.isfinite(labels).all()
     assert segment.meta["robot"] == 0 and segment.end["status"] == "closed"
+    # the file names its observation's channels (what fine-tuning checks against the policy's layout)
+    assert segment.meta["obs_labels"] == make_task("lift-cube").obs_spec.labels() and obs.shape[1] == 26
     assert [s.command["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
     # every score but the denoising U (recorded on its own): the asking signal (the default) and the shadows
     assert all(set(s.shadow) == {"spread-stall", "output-variance", "random"} for s in segment.steps)

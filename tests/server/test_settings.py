@@ -99,10 +99,12 @@ def test_the_old_hand_back_names_are_accepted_with_a_warning_naming_the_new_one(
 
 
 def test_the_hand_back_settings_are_the_controllers_names():
-    assert tuple(RENAMED.values()) == HAND_BACK_FIELDS
+    assert set(RENAMED.values()) <= set(HAND_BACK_FIELDS)  # ``resume`` came later: it had no old name
     assert set(HAND_BACK_FIELDS) <= set(Settings.model_fields) and not set(RENAMED) & set(Settings.model_fields)
-    s = Settings(hand_back="continuous", budget=9, return_after=4, cooldown=0)
-    assert controller_config(s) == ControllerConfig(hand_back="continuous", budget=9, return_after=4, cooldown=0)
+    s = Settings(hand_back="continuous", budget=9, return_after=4, cooldown=0, resume="history")
+    expected = ControllerConfig(hand_back="continuous", budget=9, return_after=4, cooldown=0, resume="history")
+    assert controller_config(s) == expected
+    assert Settings().resume == "restart"
     assert Settings().budget == 4 and Settings().cooldown == 10 and Settings().return_after is None
 
 

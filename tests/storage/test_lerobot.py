@@ -206,22 +206,52 @@ def test_an_incompatible_dataset_is_refused_naming_each_mismatched_feature(folde
     with pytest.raises(LeRobotImportError) as err:
         _import(root, tmp_path / "out")
     message = str(err.value)
-    assert "observation.state: names differ from the task's at 0: 'joint_pos[0]' != 'eef_pos[0]'" in message
-    assert "action: names differ" in message and "'j0' != 'x'" in message
+    assert "observation.state: missing eef_pos[0]; extra joint_pos[0]\n" in message
+    assert "action: missing x, y, z, r00, r10, r20, r01, r11, r21; extra j0, j1, j2, j3, j4, j5, j6, r0, r1" in message
     assert "observation.ee_pose: missing" in message
     assert not (tmp_path / "out").exists()  # refused before anything was written
     # with a way to compute the pose from the state, the pose is not a problem; the names still are
-    with pytest.raises(LeRobotImportError, match="names differ") as err:
+    with pytest.raises(LeRobotImportError, match="extra joint_pos") as err:
         _import(root, tmp_path / "out", pose_from_state=SPEC.ee_pose)
     assert "ee_pose" not in str(err.value)
     _edit_info(root, lambda info: info["features"]["action"].update(shape=[7], names=None))
-    with pytest.raises(LeRobotImportError, match=r"action: shape \[7\], the task's is \[10\]"):
+    with pytest.raises(LeRobotImportError, match=r"action: shape \[7\], the task's is \[10\]; its channels are not"):
         _import(root, tmp_path / "out")
     _edit_info(root, lambda info: info.update(codebase_version="v2.1"))
     with pytest.raises(LeRobotImportError, match="codebase_version v2.1"):
         _import(root, tmp_path / "out")
     with pytest.raises(LeRobotImportError, match="not a LeRobotDataset"):
         _import(tmp_path / "nowhere", tmp_path / "out")
+
+
+def test_a_dataset_that_lacks_a_channel_of_the_task_is_refused_naming_it_and_writes_nothing(tmp_path):
+    # a cup-stack dataset recorded before the task observed whether the red cup was visible
+    task, cup = "cup-stack", make_task("cup-stack").obs_spec
+    older = cup.labels()[:-1]
+    demos = tmp_path / "episodes"
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        with EpisodeWriter(demos / f"e{i}.mcap", {"task": task, "seed": i, "obs_labels": older}) as w:
+            for t in range(3):
+                act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [-1.0]]
+                w.write_step(t, rng.normal(size=len(older)), act, act[:3], [0, 0, 0, 1.0], 0.04, t == 2, "expert")
+            w.finish(True, 3, "success")
+    root = tmp_path / "ds"
+    write_dataset(from_folder(demos), root, FPS, list(ACTION_LABELS), progress=False)
+    out = tmp_path / "out"
+    with pytest.raises(LeRobotImportError) as err:
+        import_dataset(root, out, task, cup.labels(), list(ACTION_LABELS), cup.ee_pose, progress=False)
+    assert str(err.value) == (
+        f"{root} does not fit task cup-stack:\n  observation.state: shape [29], the task's is [30]; missing red_visible"
+    )
+    assert not out.exists()  # refused before anything was written
+    # a dataset that does not name its channels: its size is what can be said, and the task's channels
+    _edit_info(root, lambda info: info["features"]["observation.state"].update(names=None))
+    with pytest.raises(
+        LeRobotImportError, match=r"shape \[29\], the task's is \[30\]; its channels are not named; the task's"
+    ) as err:
+        import_dataset(root, out, task, cup.labels(), list(ACTION_LABELS), cup.ee_pose, progress=False)
+    assert "red_observed_to_green_pos(3), red_visible]" in str(err.value) and not out.exists()
 
 
 def test_a_dataset_without_ee_pose_gets_it_from_the_state(tmp_path):

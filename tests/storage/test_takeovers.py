@@ -63,3 +63,34 @@ def test_a_bad_tail_is_refused_with_its_value(tail):
         TakeoverSelection(tail=tail)
     with pytest.raises(ValueError, match="takeover tail must be an integer >= 1"):
         FinetuneConfig(takeover_tail=tail)
+
+
+def test_a_segment_recorded_with_another_observation_layout_is_left_out_naming_its_channels(tmp_path):
+    from sim.registry import make_task
+    from tests.helpers import write_segment
+
+    lift, cup = make_task("lift-cube").obs_spec, make_task("cup-stack").obs_spec
+    swapped = lift.labels()[:11] + lift.labels()[20:23] + lift.labels()[11:20] + lift.labels()[23:]
+    paths = [
+        write_segment(tmp_path / "same.mcap", lift.dim, seed=1, obs_labels=lift.labels()),
+        write_segment(tmp_path / "old.mcap", lift.dim, seed=2),  # written before segments named their channels
+        write_segment(tmp_path / "swapped.mcap", lift.dim, seed=3, obs_labels=swapped),  # the same size
+        write_segment(tmp_path / "cup.mcap", cup.dim, seed=4, task="cup-stack", obs_labels=cup.labels()),
+    ]
+    out = load_takeovers(paths, obs_dim=lift.dim, obs_labels=lift.labels())
+    assert out.used == ["same.mcap", "old.mcap"] and len(out) == 10
+    assert out.skipped["swapped.mcap"] == (
+        "recorded with another observation layout than the policy's (task lift-nut, observations [eef_pos(3), "
+        "eef_rot6d(6), gripper_qpos(2), object_to_eef_pos(3), object_pos(3), object_rot6d(6), object_extent(3)]): "
+        "the same channels in another order (at channel 11: object_to_eef_pos, not object_pos)"
+    )
+    assert out.skipped["cup.mcap"].startswith(
+        "recorded with another observation layout than the policy's (task cup-stack"
+    )
+    assert (
+        "missing object_pos, object_rot6d, object_to_eef_pos, object_extent; extra green_pos" in out.skipped["cup.mcap"]
+    )
+    # without the policy's layout (an older checkpoint), segments are judged by their size alone
+    old_policy = load_takeovers(paths, obs_dim=lift.dim)
+    assert old_policy.used == ["same.mcap", "old.mcap", "swapped.mcap"]
+    assert "the policy takes 26 per step" in old_policy.skipped["cup.mcap"]

@@ -31,6 +31,7 @@ from sim.registry import make_task
 from tests.helpers import finetunable_policy_folder, write_segment
 
 TASK = "lift-cube"
+LABELS = make_task(TASK).obs_spec.labels()
 TINY = FinetuneConfig(steps=12, batch_size=8, checkpoint_every=5, eval_episodes=1, min_steps=1, fit_episodes=1)
 
 
@@ -54,10 +55,11 @@ def _closed_segment(name: str, policy_id: int, ended_at: datetime, **kw) -> Segm
 @pytest.fixture
 def store(tmp_path):
     """A data folder with a registered active tiny policy (pretrained on 5 synthetic episodes), two good
-    takeover segments and one corrupt one, all closed."""
+    takeover segments and one corrupt one, all closed. The policy and its episodes record the task's
+    observation layout, as ``hitl train`` and ``hitl demos`` do; the segments record none (as older ones)."""
     obs_dim = make_task(TASK).obs_spec.dim
     data_dir = tmp_path / "var"
-    folder = finetunable_policy_folder(tmp_path, TASK)
+    folder = finetunable_policy_folder(tmp_path, TASK, obs_labels=LABELS)
     url = f"sqlite:///{data_dir / 'hitl.db'}"
     migrate(url)
     sessions = session_factory(make_engine(url))
@@ -130,6 +132,7 @@ def test_a_job_makes_a_recalibrated_evaluated_version_and_records_the_gate(store
     assert registry.resolve(sessions, "lift-cube").id == (child.id if job.gate["promote"] else parent.id)
     info = read_info(child.path)
     assert info["finetune"]["job"] == job.id and info["finetune"]["manifest"]["parent"] == "lift-cube@1"
+    assert info["obs_labels"] == LABELS  # the parent's layout carried forward: the child is checked as it was
 
 
 @pytest.mark.parametrize(
@@ -165,6 +168,65 @@ def test_only_corrupt_segments_fail_the_job_with_their_names_and_register_nothin
     with sessions() as s:
         job = s.scalars(select(FinetuneJob)).one()
     assert job.status == "failed" and "no usable sample" in job.error and job.version_id is None
+
+
+def test_takeovers_recorded_with_another_observation_layout_are_not_trained_on_and_named(store):
+    sessions, data_dir, parent = store
+    # the same size as the policy's observation, the object's extent where its position was
+    moved = LABELS[:11] + LABELS[23:] + LABELS[11:23]
+    for i, name in enumerate(("good-1", "good-2")):
+        write_segment(data_dir / "segments" / f"{name}.mcap", len(LABELS), seed=i, obs_labels=moved)
+    lines = []
+    runner = FinetuneRunner(sessions, data_dir, progress=False, report=lines.append)
+    [summary] = runner.run(JobRequest(policy="lift-cube", config=TINY))
+    assert summary["status"] == "failed" and "no usable sample" in summary["error"]
+    why = (
+        "recorded with another observation layout than the policy's (task lift-nut, observations [eef_pos(3), "
+        "eef_rot6d(6), gripper_qpos(2), object_extent(3), object_pos(3), object_rot6d(6), object_to_eef_pos(3)]): "
+        "the same channels in another order (at channel 11: object_extent, not object_pos)"
+    )
+    assert f"good-1.mcap: {why}" in summary["error"] and any(f"skipped segment good-2.mcap: {why}" in x for x in lines)
+    assert [v.ref for v in registry.versions(sessions, "lift-cube")] == ["lift-cube@1"]
+    # one segment of the policy's layout: the job trains on it alone, the other named in data.skipped
+    write_segment(data_dir / "segments" / "good-2.mcap", len(LABELS), seed=2, obs_labels=LABELS)
+    [summary] = runner.run(JobRequest(policy="lift-cube", config=TINY, promote=False))
+    assert summary["status"] == "succeeded", summary
+    with sessions() as s:
+        job = s.get(FinetuneJob, summary["job"])
+    assert job.data["skipped"]["good-1.mcap"] == why and job.data["counts"]["samples"] == 5
+
+
+def test_episodes_recorded_with_another_observation_layout_are_refused_naming_the_files(store, tmp_path):
+    from storage import keys
+    from storage.episodes import EpisodeWriter
+
+    sessions, data_dir, _ = store
+    extra = tmp_path / "extra"
+    moved = LABELS[:11] + LABELS[23:] + LABELS[11:23]  # the same size: the dataset itself loads
+    for name, labels in (("lift.mcap", LABELS), ("moved.mcap", moved)):
+        with EpisodeWriter(extra / name, {"task": "x", "seed": 0, "obs_labels": labels}, object_names=[]) as w:
+            act = [0.0, 0.0, 0.9, 0, 1, 0, 1, 0, 0, -1.0]
+            w.write_step(0, [0.0] * len(labels), act, act[:3], [0, 0, 0, 1.0], 0.04, True, keys.SOURCE_EXPERT)
+            w.finish(True, 1, "success")
+    request = JobRequest(policy="lift-cube", source="full-episodes", episodes=extra, config=TINY)
+    [summary] = FinetuneRunner(sessions, data_dir, progress=False).run(request)
+    assert summary["status"] == "failed"
+    assert summary["error"] == (
+        f"1 episode(s) of {extra} were recorded with another observation layout than the policy's [eef_pos(3), "
+        "eef_rot6d(6), gripper_qpos(2), object_pos(3), object_rot6d(6), object_to_eef_pos(3), object_extent(3)]: "
+        "moved.mcap: recorded with another observation layout ([eef_pos(3), eef_rot6d(6), gripper_qpos(2), "
+        "object_extent(3), object_pos(3), object_rot6d(6), object_to_eef_pos(3)]): the same channels in another "
+        "order (at channel 11: object_extent, not object_pos)"
+    )
+
+
+def test_a_gate_task_the_parent_cannot_run_fails_the_job_before_it_trains(store):
+    sessions, data_dir, _ = store
+    request = JobRequest(policy="lift-cube", config=TINY, eval_tasks=("lift-nut", "open-drawer"))
+    [summary] = FinetuneRunner(sessions, data_dir, progress=False).run(request)
+    assert summary["status"] == "failed" and "cannot run task open-drawer" in summary["error"]
+    assert "missing object_pos, object_rot6d, object_to_eef_pos, object_extent" in summary["error"]
+    assert not (data_dir / "finetune" / "job-1" / "train").exists()  # nothing trained
 
 
 def test_a_second_job_is_refused_while_the_lease_is_held(store):

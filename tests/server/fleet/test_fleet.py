@@ -6,6 +6,7 @@ from datetime import UTC, datetime
 
 import numpy as np
 import pytest
+from sqlalchemy import select
 
 from policy.assisted import AssistConfig, run_assisted
 from policy.evaluate import rollout_policy
@@ -14,6 +15,7 @@ from server.errors import ServiceError
 from server.fleet.fleet import Fleet
 from server.settings import RobotGroup, Settings
 from server.workers import InProcessWorker, Priority, in_process_workers
+from sim.registry import make_task
 from sim.spaces import TeleopCommand
 from tests.helpers import KinematicTask, tiny_policy_folder
 
@@ -149,6 +151,19 @@ def test_a_new_policy_version_takes_over_at_the_next_episode(tmp_path):
     with pytest.raises(ServiceError) as broken:
         fleet.register_policy(tmp_path / "broken")
     assert broken.value.status == 422  # a policy folder that cannot be read
+    fleet.stop()
+
+
+def test_a_version_that_cannot_run_its_task_is_not_registered_and_the_message_names_the_channels(tmp_path):
+    fleet, _ = _fleet(tmp_path, threshold=1e9)
+    cup = tiny_policy_folder(tmp_path / "cup", "cup-stack", 1e9, obs_labels=make_task("cup-stack").obs_spec.labels())
+    with pytest.raises(ServiceError) as err:
+        fleet.register_policy(cup, task="lift-cube")
+    assert err.value.status == 409  # the request conflicts with what the folder holds
+    assert "cannot run task lift-cube: it was trained on observations [eef_pos(3)" in err.value.message
+    assert "missing green_pos, green_rot6d" in err.value.message and "extra object_pos" in err.value.message
+    with fleet.sessions() as s:
+        assert [v.path for v in s.scalars(select(PolicyVersion))] == [str((tmp_path / "policy").resolve())]
     fleet.stop()
 
 

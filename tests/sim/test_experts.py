@@ -1,0 +1,55 @@
+import numpy as np
+import pytest
+
+from sim.experts import CARRY_CLEARANCE, OperatorStyle, operator_rng
+from sim.registry import make_expert
+from sim.spaces import TeleopCommand
+
+
+def test_a_person_keeps_one_way_of_working_per_episode():
+    draws = {s: [operator_rng(s, 7, k).uniform(size=3).tolist() for k in (1, 2, 3)] for s in OperatorStyle}
+    assert draws["carry-on"][0] == draws["carry-on"][1] == draws["carry-on"][2]  # the same plan at every request
+    assert draws["replan"][0] != draws["replan"][1]  # a fresh one at every request
+    assert draws["carry-on"][0] == draws["replan"][0]  # the first request plans the same in both
+    assert operator_rng("carry-on", 8, 1).uniform() != operator_rng("carry-on", 7, 1).uniform()
+    with pytest.raises(ValueError):
+        operator_rng("psychic", 7, 1)
+
+
+def _carry(task, expert, seed: int) -> None:
+    """Runs ``expert`` from the reset of ``seed`` until it carries the green cup towards the red one."""
+    task.reset(seed)
+    expert.reset(task, operator_rng("carry-on", seed, 1))
+    for _ in range(300):
+        if expert.phase == "carry":
+            return
+        task.step(task.teleop(expert.act(task)).action)
+    raise AssertionError("the expert never carried the cup")
+
+
+def test_a_carried_cup_taken_over_again_goes_on_at_its_height(task_cache):
+    """The policy lowered the carried cup 3 cm (still clear of the red rim): the carry-on operator steers it
+    across at that height, where one planning afresh climbs to a new carry height first."""
+    task = task_cache("cup-stack")
+
+    def lowered_then_taken_over(style: str) -> tuple[float, list[float]]:
+        _carry(task, make_expert("cup-stack"), 11)
+        for _ in range(3):  # the policy moves the cup down 3 cm
+            task.step(task.teleop(TeleopCommand((0.0, 0.0, -0.01), (0, 0, 0), 1.0)).action)
+        s = task.privileged()
+        assert s["green_bottom_z"] > s["red_rim_z"] + CARRY_CLEARANCE
+        start = float(task.ee_pose()[0][2])
+        expert = make_expert("cup-stack", retry=True, style=style)
+        expert.take_over(task, 11, 2)
+        assert expert.phase == "carry"
+        aim = float(expert._target("carry", task)[2]) - start  # the height it carries at, from where it stands
+        heights = []
+        for _ in range(6):
+            task.step(task.teleop(expert.act(task)).action)
+            heights.append(float(task.ee_pose()[0][2]) - start)
+        return aim, heights
+
+    aim, heights = lowered_then_taken_over("carry-on")
+    assert aim == pytest.approx(0.0, abs=1e-9) and max(np.abs(heights)) < 0.006
+    aim, _ = lowered_then_taken_over("replan")
+    assert abs(aim) > 1e-3  # its plan's own carry height (drawn afresh), not the height it stands at
