@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	lift-baselines-hitl-docs resume-docs nights-docs nights-lift-docs asking-dev-docs \
-	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs clean
+	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs drawer-steer-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -199,6 +199,32 @@ resume-docs: install
 floor-docs: install
 	$(BIN)/hitl bench floor --policy-root policies --report docs/benchmarks/hitl.md --section floor-c1 \
 		--cache runs/bench-floor --json --quiet > docs/results/hitl/floor-c1.json
+
+# docs/benchmarks/hitl.md, "Chunks and history on the drawer": two drawer policies beside the bundled one (chunks of 16
+# with 8 executed and 2 observations; 2 observations, chunk 1), trained on the drawer demonstrations of
+# `make policy-docs`: unaided rollouts, one 4- or 8-step steer early on with each hand-back, the floor and the serving
+# cost (about 1 h 15 min on 2 cores).
+DRAWER_STEER := --at 0 5 10 --budgets 4 8 --episodes 12 --threads 1 --quiet
+drawer-steer-docs: install
+	$(BIN)/hitl train --task open-drawer --data data/demos/open-drawer-dart --out runs/open-drawer-c16 --obs-horizon 2 \
+		--action-horizon 16 --n-action-steps 8 --threads 2 --quiet
+	$(BIN)/hitl train --task open-drawer --data data/demos/open-drawer-dart --out runs/open-drawer-h2 --obs-horizon 2 \
+		--threads 2 --quiet
+	for p in c16 h2; do $(BIN)/hitl rollout --policy runs/open-drawer-$$p --task open-drawer --episodes 50 --seed 1000 --envs 10 \
+		--no-uncertainty --threads 1 --json --quiet > docs/results/policy/rollout-open-drawer-$$p.json || exit 1; done
+	$(BIN)/hitl report resume --policy policies/open-drawer $(DRAWER_STEER) --out docs/results/policy/resume-open-drawer-steer-c1.json
+	for p in c16 h2; do $(BIN)/hitl report resume --policy runs/open-drawer-$$p $(DRAWER_STEER) \
+		--out docs/results/policy/resume-open-drawer-steer-$$p.json && \
+		$(BIN)/hitl report resume --policy runs/open-drawer-$$p $(DRAWER_STEER) --resume history \
+		--out docs/results/policy/resume-open-drawer-steer-$$p-history.json || exit 1; done
+	$(BIN)/hitl bench floor --tasks open-drawer --policy open-drawer=runs/open-drawer-c16 --cache runs/bench-floor --json \
+		--quiet > docs/results/hitl/floor-drawer-c16.json
+	for p in c16 h2; do $(BIN)/hitl bench floor --tasks open-drawer --policy open-drawer=runs/open-drawer-$$p --resume history \
+		--cache runs/bench-floor --json --quiet > docs/results/hitl/floor-drawer-$$p-history.json || exit 1; done
+	$(BIN)/hitl bench uncertainty --policy policies/open-drawer --task open-drawer --threads 1 --quiet \
+		> docs/results/serving/uncertainty-open-drawer-c1.json
+	$(BIN)/hitl bench uncertainty --policy runs/open-drawer-c16 --task open-drawer --threads 1 --quiet \
+		> docs/results/serving/uncertainty-open-drawer-c16.json
 
 # docs/benchmarks/nights.md: 3 days of the fleet of configs/nights.toml with the operator bot (10 minutes each) and 2
 # nights of the service's own fine-tuning job between them; the pretraining data is recorded on the first night where

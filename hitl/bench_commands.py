@@ -82,10 +82,7 @@ def _cmd_bench_hitl(args: argparse.Namespace) -> int:
         raise ValueError(f"--cached-only: the reference rollouts of {raw['pending_references']} have not run yet")
     summary = summarize(raw)
     summary["provenance"] = {
-        "command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-        "machine": f"{platform.machine()}, {_cpus()} CPU cores, {platform.python_implementation()} "
-        f"{platform.python_version()}, no GPU used",
-        "date": datetime.date.today().isoformat(),
+        **_provenance(),
         "seeds": [recipe.seed, recipe.seed + recipe.episodes - 1],
         "reference_seeds": [recipe.reference_seed, recipe.reference_seed + recipe.reference_episodes - 1],
     }
@@ -144,18 +141,23 @@ def _cmd_bench_floor(args: argparse.Namespace) -> int:
         quick=args.quick,
     )
     summary = run_floor(recipe, args.cache, jobs=args.jobs or default_jobs(), progress=not args.quiet)
-    summary["provenance"] = {
-        "command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-        "machine": f"{platform.machine()}, {_cpus()} CPU cores, {platform.python_implementation()} "
-        f"{platform.python_version()}, no GPU used",
-        "date": datetime.date.today().isoformat(),
-    }
+    summary["provenance"] = _provenance()
     if args.report:
         from bench.report_sections import replace_section
 
         summary["report"] = str(replace_section(args.report, args.section, markdown(summary)))
     print(json.dumps(summary, indent=None if args.json else 2))
     return 0
+
+
+def _provenance() -> dict:
+    """The command line that made a result, the machine and the date."""
+    return {
+        "command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "machine": f"{platform.machine()}, {_cpus()} CPU cores, {platform.python_implementation()} "
+        f"{platform.python_version()}, no GPU used",
+        "date": datetime.date.today().isoformat(),
+    }
 
 
 def _cpus() -> int:
