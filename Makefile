@@ -195,10 +195,13 @@ resume-docs: install
 		--threads 2 --out docs/results/policy/resume-open-drawer.json --quiet
 
 # docs/benchmarks/hitl.md, "The floor": the oracle's fewest operator steps for 100% success (best-of-sweep), on the
-# bundled policies, with the simulated operator in carry-on style (about 15 min on 2 cores).
+# bundled policies, with the simulated operator in carry-on style, and on cup-stack and the drawer with the operator
+# that replans at each request (before) (about 25 min on 2 cores).
 floor-docs: install
 	$(BIN)/hitl bench floor --policy-root policies --report docs/benchmarks/hitl.md --section floor-c1 \
 		--cache runs/bench-floor --json --quiet > docs/results/hitl/floor-c1.json
+	$(BIN)/hitl bench floor --tasks cup-stack open-drawer --operator replan --policy-root policies --cache runs/bench-floor \
+		--json --quiet > docs/results/hitl/floor-c1-replan.json
 
 # docs/benchmarks/hitl.md, "Chunks and history on the drawer": two drawer policies beside the bundled one (chunks of 16
 # with 8 executed and 2 observations; 2 observations, chunk 1), trained on the drawer demonstrations of
