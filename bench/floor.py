@@ -31,11 +31,11 @@ from sim.experts import OperatorStyle
 VERSION = 1  # bump when a change alters what a cell computes
 FULL_TELEOP = "full-teleop"
 # where the oracle asks (window, reach) and for how long (requests per episode: None, no cap)
-GRID: dict[str, tuple[tuple[tuple[float, ...], tuple[int | None, ...]], ...]] = {
-    "grasp": (((0.05, 0.10, 0.20), (2, 4, 8, None)),),
-    "insertion": (((0.05, 0.10, 0.15), (4, 16, None)),),
-    "early": (((1, 2, 4, 6), (None,)),),
-    "astray": (((0.0, 0.05), (2, 8, None)),),
+GRID: dict[str, tuple[tuple[float, ...], tuple[int | None, ...]]] = {
+    "grasp": ((0.05, 0.10, 0.20), (2, 4, 8, None)),
+    "insertion": ((0.05, 0.10, 0.15), (4, 16, None)),
+    "early": ((1, 2, 4, 6), (None,)),
+    "astray": ((0.0, 0.05), (2, 8, None)),
 }
 # the paper's ratio to full teleoperation with its signal (Table I), per problem
 PAPER = {"grasp": 0.22, "insertion": 0.04, "early": 0.07, "astray": 0.07}
@@ -82,10 +82,10 @@ def grid(task: str, quick: bool = False) -> list[OracleConfig]:
     its widest reach with no cap only)."""
     out = []
     for window in task_windows(task):
-        for reaches, caps in GRID[window]:
-            if quick:
-                reaches, caps = (max(reaches),), (None,)
-            out += [OracleConfig(window=window, reach=r, requests=c) for r in reaches for c in caps]
+        reaches, caps = GRID[window]
+        if quick:
+            reaches, caps = (max(reaches),), (None,)
+        out += [OracleConfig(window=window, reach=r, requests=c) for r in reaches for c in caps]
     return out
 
 

@@ -39,7 +39,7 @@ from policy.signals.base import (
     TriggerState,
 )
 from sim.env import Task
-from sim.experts import GRIPPED, CupStackExpert, LiftExpert, OpenDrawerExpert
+from sim.experts import AT_GRASP, GRIPPED, CupStackExpert, LiftExpert, OpenDrawerExpert
 from sim.registry import make_expert
 
 WINDOWS: dict[type, tuple[str, ...]] = {
@@ -91,7 +91,7 @@ def in_window(window: str, reach: float, scene: Task, policy_steps: int) -> bool
         return CupStackExpert().holding(scene) and apart < reach
     handles = np.asarray(s["handles"])
     intended = int(s["intended"])
-    held = scene.gripper_opening() < GRIPPED and float(np.linalg.norm(pos - handles[intended])) < 0.02
+    held = scene.gripper_opening() < GRIPPED and float(np.linalg.norm(pos - handles[intended])) < AT_GRASP
     if held:
         return False
     if window == "early":
