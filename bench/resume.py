@@ -168,3 +168,96 @@ def task_resume(
             )
     steps = float(np.mean([e.steps for e in alone]))
     return TaskResume(task, policy_name, seeds, float(ok.mean()), steps, cells, resume)
+
+
+@dataclass(frozen=True)
+class PregraspEpisode:
+    seed: int
+    operator_steps: int  # the operator's steps to the pre-grasp pose
+    closed: bool  # the policy closed the gripper after the hand-back
+    success: bool  # ... and the episode succeeded (the object lifted) with no further help
+    steps_after: int  # the policy's steps from the hand-back to the episode's end
+
+
+@dataclass(frozen=True)
+class TaskPregrasp:
+    """Handed back at the pre-grasp pose: the operator placed the open gripper at the grasp, the policy
+    is to close and lift alone."""
+
+    task: str
+    policy: str
+    seeds: list[int]
+    alone: float  # success rate with no takeover
+    episodes: list[PregraspEpisode]
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean([e.success for e in self.episodes])) if self.episodes else 0.0
+
+    @property
+    def closed_rate(self) -> float:
+        return float(np.mean([e.closed for e in self.episodes])) if self.episodes else 0.0
+
+    def summary(self) -> dict:
+        return {
+            "task": self.task,
+            "alone": self.alone,
+            "closed": self.closed_rate,
+            "success_rate": self.success_rate,
+            "operator_steps": float(np.mean([e.operator_steps for e in self.episodes])) if self.episodes else 0.0,
+        }
+
+
+@dataclass(frozen=True)
+class PregraspReport:
+    tasks: list[TaskPregrasp]
+
+    def to_dict(self) -> dict:
+        return {"tasks": [{**asdict(t), "summary": t.summary()} for t in self.tasks]}
+
+    def markdown(self) -> str:
+        lines = [
+            "Handed back at the pre-grasp pose: the operator places the open gripper at the grasp, then the "
+            "policy goes on alone.",
+            "",
+            "| task | policy | episodes | alone | closed after the hand-back | closed and lifted | operator steps |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for t in self.tasks:
+            s = t.summary()
+            lines.append(
+                f"| {t.task} | `{t.policy}` | {len(t.seeds)} | {t.alone:.0%} | {s['closed']:.0%} | "
+                f"{s['success_rate']:.0%} | {s['operator_steps']:.1f} |"
+            )
+        return "\n".join(lines) + "\n"
+
+
+def task_pregrasp(
+    policy: DiffusionPolicy,
+    policy_name: str,
+    task: str,
+    episodes: int,
+    seed: int,
+    n_envs: int = 8,
+    progress: bool = True,
+) -> TaskPregrasp:
+    """``episodes`` seeds from ``seed``, each run twice through the one controller: alone, and with the robot
+    asking at its first step, the simulated operator driving it to the pre-grasp pose (``Expert.placed``) and
+    handing it back there (continuous mode, the operator's own hand-back; the policy's history restarts)."""
+    seeds = list(range(seed, seed + episodes))
+    alone, _ = run_assisted(policy, task, seeds, None, config=AssistConfig(n_envs=n_envs), progress=progress)
+    cfg = AssistConfig(
+        hand_back="continuous",
+        return_after=None,
+        operator_hands_back=True,
+        operator_hands_back_at="placed",
+        n_envs=n_envs,
+    )
+    eps, _ = run_assisted(policy, task, seeds, AtStep(policy, AtStepConfig(at=0)), config=cfg, progress=progress)
+    rows = []
+    for ep in eps:
+        ran = [i for i, by_operator in enumerate(ep.operator) if by_operator]
+        after = ran[-1] + 1 if ran else 0
+        closed = any(float(a[9]) > 0 for a, op in zip(ep.actions[after:], ep.operator[after:], strict=True) if not op)
+        rows.append(PregraspEpisode(ep.seed, len(ran), closed, ep.success, len(ep.actions) - after))
+    return TaskPregrasp(task, policy_name, seeds, float(np.mean([e.success for e in alone])), rows)

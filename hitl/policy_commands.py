@@ -67,6 +67,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         threads=args.threads,
         symmetry_augment=args.symmetry_augment,
+        origin_jitter=args.origin_jitter,
+        height_jitter=args.height_jitter,
     )
     torch.manual_seed(args.seed)
     policy = DiffusionPolicy(cfg)
@@ -247,6 +249,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--symmetry-augment",
         action="store_true",
         help="train on observations turned into random identical poses of the scene (lift-cube: quarter turns)",
+    )
+    p.add_argument(
+        "--origin-jitter",
+        type=float,
+        default=0.0,
+        help="metres: each training sample sees its object up to this far from where it is across the table (x, y), "
+        "so that what the policy does near an object follows what it senses there (finger_rays), not the "
+        "object's origin (--frame object only; default 0: off)",
+    )
+    p.add_argument(
+        "--height-jitter",
+        type=float,
+        default=0.0,
+        help="metres: each training sample sees its end effector and its targets up to this far higher or lower "
+        "against the object, so that the height the policy holds near an object follows what it senses there "
+        "(--frame object only; default 0: off)",
     )
     p.add_argument(
         "--frame",

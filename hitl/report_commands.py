@@ -218,6 +218,24 @@ def _cmd_resume(args: argparse.Namespace) -> int:
     return _write_report(ResumeReport([row]), args.out)
 
 
+def _cmd_pregrasp(args: argparse.Namespace) -> int:
+    set_threads(args)
+    from bench.resume import PregraspReport, task_pregrasp
+    from policy.checkpoint import check_fits, load_policy
+
+    policy, info = load_policy(args.policy)
+    tasks = args.tasks or [info.get("task")]
+    if not all(tasks):
+        raise SystemExit("hitl report pregrasp: the policy names no task; give --tasks")
+    for task in dict.fromkeys(tasks):
+        check_fits(info, task, args.policy)
+    rows = [
+        task_pregrasp(policy, str(args.policy), task, args.episodes, args.seed, progress=not args.quiet)
+        for task in dict.fromkeys(tasks)
+    ]
+    return _write_report(PregraspReport(rows), args.out)
+
+
 def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     """Adds ``plot``, ``report`` and ``bench`` (with ``bench uncertainty``); returns ``bench``'s subparsers."""
     p = sub.add_parser("plot", help="write figures to docs/figures/")
@@ -293,6 +311,18 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     q.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all)")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_resume)
+    q = what.add_parser(
+        "pregrasp",
+        help="the operator places the open gripper at the grasp and hands back: does the policy close and lift?",
+    )
+    q.add_argument("--policy", required=True, type=Path)
+    q.add_argument("--tasks", nargs="+", default=None, help="default: the policy's task")
+    q.add_argument("--episodes", type=positive_int, default=12, help="episodes per task")
+    q.add_argument("--seed", type=int, default=2000, help="first seed (default: the development seeds)")
+    q.add_argument("--out", type=Path, help="JSON file to write (the markdown table is printed)")
+    q.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all)")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_pregrasp)
 
     p = sub.add_parser("bench", help="speed measurements, printed as JSON")
     what = p.add_subparsers(dest="target", required=True)

@@ -15,8 +15,9 @@ Modes, as in the paper: ``budgeted`` gives the operator ``budget`` steps per ass
 controller's ``continuous`` with ``return_after = 1`` (``AssistConfig.return_after``: more calm steps
 keep the operator in control longer), since by default the simulated operator never hands back on
 its own. With ``operator_hands_back`` it does, once the object it was asked about is held
-(``Expert.holding``), as an operator who was called for a grasp would; with ``return_after = None``
-that is the only hand-back. On hand-back the policy restarts from the current pose with a fresh
+(``Expert.holding``), as an operator who was called for a grasp would, or, with
+``operator_hands_back_at = "placed"``, once the gripper stands open at the grasp (``Expert.placed``); with
+``return_after = None`` that is the only hand-back. On hand-back the policy restarts from the current pose with a fresh
 observation history.
 """
 
@@ -42,6 +43,9 @@ from sim.view import OperatorView
 from storage import keys
 
 LIMITS = TeleopLimits()
+# where the simulated operator hands back on its own (``ExpertOperator``): once the object is held, or once
+# the gripper stands open at the grasp (the pre-grasp pose)
+HANDS_BACK_AT = ("held", "placed")
 
 
 @dataclass(frozen=True)
@@ -59,12 +63,16 @@ class AssistConfig:
     # the simulated operator hands back once the scene shows the object held (``Expert.holding``), as a
     # console operator asked to help with a grasp does
     operator_hands_back: bool = False
+    operator_hands_back_at: str = "held"  # one of HANDS_BACK_AT
     # how the simulated operator plans at a takeover after the policy moved the robot (``sim.experts.OperatorStyle``)
     operator: str = OperatorStyle.CARRY_ON
 
     def __post_init__(self) -> None:
         if self.operator not in tuple(OperatorStyle):
             raise ValueError(f"operator must be one of {[str(s) for s in OperatorStyle]}, got {self.operator!r}")
+        if self.operator_hands_back_at not in HANDS_BACK_AT:
+            at = self.operator_hands_back_at
+            raise ValueError(f"operator_hands_back_at must be one of {HANDS_BACK_AT}, got {at!r}")
         if self.hand_back not in HAND_BACK:
             raise ValueError(f"hand_back must be one of {HAND_BACK}, got {self.hand_back!r}")
         if self.resume not in RESUME:
@@ -118,7 +126,8 @@ class ExpertOperator:
     ``carry-on`` style with one plan per episode, in ``replan`` style afresh at each request); its
     commands are clamped to the teleop limits, as a console's are. With ``hands_back_when_held`` it
     hands the robot back once the object, not held when it took over, is held (``Expert.holding``): it
-    was asked for help, it gave the grasp."""
+    was asked for help, it gave the grasp. With ``at = "placed"`` it hands back earlier, once its plan has
+    placed the open gripper at the grasp (``Expert.placed``): the policy is to close and lift."""
 
     def __init__(
         self,
@@ -126,9 +135,12 @@ class ExpertOperator:
         seeds: list[int],
         hands_back_when_held: bool = False,
         style: OperatorStyle | str = OperatorStyle.CARRY_ON,
+        at: str = "held",
     ) -> None:
+        if at not in HANDS_BACK_AT:
+            raise ValueError(f"at must be one of {HANDS_BACK_AT}, got {at!r}")
         self.task_name, self.seeds = task_name, seeds
-        self.hands_back_when_held = hands_back_when_held
+        self.hands_back_when_held, self.at = hands_back_when_held, at
         self.style = OperatorStyle(style)
         self.experts: dict[int, object] = {}
         self.events: dict[int, int] = {}
@@ -149,7 +161,9 @@ class ExpertOperator:
         """Whether this operator gives the robot back now (before commanding this frame)."""
         if not self.hands_back_when_held or self.held_at_start.get(robot_id, True):
             return False
-        return self.experts[robot_id].holding(OperatorView.from_frame(self.task_name, frame))
+        view = OperatorView.from_frame(self.task_name, frame)
+        expert = self.experts[robot_id]
+        return expert.placed(view) if self.at == "placed" else expert.holding(view)
 
     def command(self, robot_id: int, frame: RobotFrame) -> TeleopCommand:
         self.clock[robot_id] = frame.clock + 1
@@ -221,7 +235,13 @@ def run_assisted(
             seeds,
             cfg.n_envs,
             record,
-            ExpertOperator(task_name, seeds, hands_back_when_held=cfg.operator_hands_back, style=cfg.operator),
+            ExpertOperator(
+                task_name,
+                seeds,
+                hands_back_when_held=cfg.operator_hands_back,
+                style=cfg.operator,
+                at=cfg.operator_hands_back_at,
+            ),
             progress,
             f"assisted {task_name} ({driver_name})" if driver is not None else f"shadow {task_name}",
             on_reset=on_reset,

@@ -78,6 +78,36 @@ class ObjectFrame:
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
+    def shifted(self, obs: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+        """obs (B, H, obs_dim) with the object seen ``offset`` (B, 3) metres from where it is (world frame,
+        the same offset at every history step): its position and the vectors from it move, the points do
+        not. Training with random offsets (``TrainConfig.origin_jitter``) decouples where the policy acts
+        from where it believes the object is: what it acts on near the object is then what it senses there
+        (``finger_rays``), not the object's origin, which for an unseen object is not where it is grasped."""
+        out = obs.clone()
+        shift = offset[:, None, :].to(obs.dtype)
+        out[..., self.object_pos : self.object_pos + 3] += shift
+        for i in self.vectors:
+            out[..., i : i + 3] += shift
+        return out
+
+    def raised(
+        self, obs: torch.Tensor, actions: torch.Tensor, height: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """obs (B, H, obs_dim) and actions (B, C, 10) with the end effector and its targets seen ``height``
+        (B,) metres higher against the object than they are, at every step; the object's own observed
+        height stays (it tells a lifted object from one at rest), and so does everything the robot senses
+        (``finger_rays``). Training with random heights (``TrainConfig.height_jitter``) makes how high the
+        policy holds the gripper near an object follow what it senses there, not the object's origin."""
+        obs_out, act_out = obs.clone(), actions.clone()
+        dz = height.to(obs.dtype)[:, None]
+        for i in self.points:
+            obs_out[..., i + 2] += dz
+        for i in self.vectors:  # vectors from the object to a point
+            obs_out[..., i + 2] -= dz
+        act_out[..., 2] += height.to(actions.dtype)[:, None]
+        return obs_out, act_out
+
     # -- the frame of one observation ------------------------------------------------------
     def pose(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """obs: (..., obs_dim) -> origin (..., 3), cos and sin of the heading (..., 1)."""

@@ -36,6 +36,12 @@ class TrainConfig:
     val_every: int = 1000
     threads: int | None = None
     symmetry_augment: bool = False  # each sample's observation turned into a random identical pose
+    # m: each sample sees its object up to this far from where it is, along each axis across the table (x, y;
+    # object-frame policies only: ``policy.frames.ObjectFrame.shifted``); 0: off
+    origin_jitter: float = 0.0
+    # m: each sample sees its end effector and its targets up to this far higher or lower against the object
+    # (object-frame policies only: ``policy.frames.ObjectFrame.raised``); 0: off
+    height_jitter: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "val_every"):
@@ -46,6 +52,10 @@ class TrainConfig:
             raise ValueError(f"lr must be a positive number, got {self.lr!r}")
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay!r}")
+        for name in ("origin_jitter", "height_jitter"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and not isinstance(v, bool) and 0 <= v < math.inf):
+                raise ValueError(f"{name} must be a number >= 0, got {v!r}")
         if not (isinstance(self.warmup_steps, int) and self.warmup_steps >= 0):
             raise ValueError(f"warmup_steps must be an integer >= 0, got {self.warmup_steps!r}")
 
@@ -171,6 +181,13 @@ def train_policy(
     ``sampler(batch, generator)`` draws each mini-batch's row indices (default: uniform over all rows);
     fine-tuning passes a ``policy.mixing.MixedSampler`` over takeover and pretraining rows concatenated.
 
+    With ``cfg.origin_jitter`` (an object-frame policy's), each sample sees its object shifted across the
+    table by a uniform random offset of up to that many metres along x and y (``ObjectFrame.shifted``); the
+    actions are unchanged, so they are expressed relative to the shifted object. The height is left alone:
+    the object's height above the table is what tells a lifted object from one at rest. With
+    ``cfg.height_jitter``, each sample's end effector and actions are seen up to that much higher or lower
+    against the object instead (``ObjectFrame.raised``).
+
     ``checkpoint(state)`` receives a ``TrainState`` every ``checkpoint_every`` steps (and after the
     last); ``resume`` continues from one: the result is the same as an uninterrupted run's.
 
@@ -186,6 +203,8 @@ def train_policy(
     g = torch.Generator().manual_seed(cfg.seed)
     if cfg.symmetry_augment and (symmetry is None or symmetry_order < 2):
         raise ValueError("symmetry_augment needs a task whose scene has a symmetry (symmetry_order >= 2)")
+    if (cfg.origin_jitter or cfg.height_jitter) and policy.frame is None:
+        raise ValueError("origin_jitter and height_jitter need an object-frame policy (hitl train --frame object)")
     ema = copy.deepcopy(policy).eval()
     opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     history: dict = {"step": [], "train_loss": [], "val_step": [], "val_loss": []}
@@ -221,6 +240,13 @@ def train_policy(
             if cfg.symmetry_augment:
                 turn = torch.randint(0, symmetry_order, (cfg.batch_size, 1), generator=g).numpy()
                 batch[keys.OBS] = torch.as_tensor(symmetry(batch[keys.OBS].numpy(), turn), dtype=torch.float32)
+            if cfg.origin_jitter:
+                offset = (torch.rand(cfg.batch_size, 3, generator=g) * 2 - 1) * cfg.origin_jitter
+                offset[:, 2] = 0.0  # across the table only: the object's height tells a lifted object from one at rest
+                batch[keys.OBS] = policy.frame.shifted(batch[keys.OBS], offset)
+            if cfg.height_jitter:
+                height = (torch.rand(cfg.batch_size, generator=g) * 2 - 1) * cfg.height_jitter
+                batch[keys.OBS], batch[keys.ACTION] = policy.frame.raised(batch[keys.OBS], batch[keys.ACTION], height)
             loss = policy.compute_loss(batch, generator=g)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"training loss became {float(loss)} at step {step}")

@@ -312,6 +312,10 @@ class Task(ABC):
         pose it from ``joint_positions``. Read-only: copy it before changing anything."""
         return self.sim.model._model
 
+    def mj_data(self):
+        """The task's live ``mujoco.MjData``, for reading the scene (``sim.rays``). Read-only."""
+        return self.sim.data._data
+
     def joint_positions(self) -> np.ndarray:
         """(nq,) the simulation's joint positions: with the task's model, they pose every body."""
         return np.array(self.sim.data.qpos, dtype=np.float64)

@@ -189,6 +189,12 @@ class Expert:
         (``policy.assisted.ExpertOperator``). False for an expert that knows no such point."""
         return False
 
+    def placed(self, task: Task) -> bool:
+        """Whether the plan has brought the gripper to where it closes on the object and the gripper is still
+        open: the pre-grasp pose, where an operator asked to place the gripper hands the robot back
+        (``policy.assisted.ExpertOperator``; ``hitl report pregrasp``)."""
+        return bool(self.phases) and not self.done and self.phase == "close" and task.gripper_opening() >= GRIPPED
+
     def _index(self, name: str) -> int:
         return next(i for i, p in enumerate(self.phases) if p.name == name)
 

@@ -13,6 +13,10 @@ the step), so it is noise to the policy rather than a per-episode constant that
 tells the training episodes apart. A cube-trained policy therefore sees an
 unseen object as new in its input, as the paper's camera-based policy does
 (see docs/policy.md, "What the policies see").
+
+``finger_rays`` is the local view the paper's wrist camera gives: range rays cast from the fingers across
+the gap and down (``sim.rays``). The box says roughly where an object is; the rays say whether the
+fingers are around something, which is what closing needs, for any object.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from sim.env import TABLE_TOP_Z, ObsSpec, Task, TaskGoal
+from sim.rays import RAYS, FingerRays
 from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
 
@@ -39,6 +44,7 @@ LIFT_OBS = ObsSpec(
         ("object_rot6d", 6),
         ("object_to_eef_pos", 3),
         ("object_extent", 3),
+        ("finger_rays", RAYS),
     )
 )
 
@@ -97,11 +103,16 @@ class LiftObject:
     # yaw about the object's vertical axis through its body origin that leaves it unchanged
     # (the cube: a quarter turn); None for objects with no such symmetry
     body_symmetry: float | None = None
+    # a box drawn per episode with a half-size in this range (m), the same on every axis; None: as built
+    half_size_range: tuple[float, float] | None = None
 
 
 LIFT_OBJECTS: dict[str, LiftObject] = {
     "cube": LiftObject(
-        "cube", _make_cube, GraspSpec((0, 0, 0), (1, 0, 0), symmetry=np.pi / 2), body_symmetry=np.pi / 2
+        "cube",
+        _make_cube,
+        GraspSpec((0, 0, 0), (1, 0, 0), symmetry=np.pi / 2),
+        body_symmetry=np.pi / 2,
     ),
     "nut": LiftObject("nut", _make_nut, GraspSpec((0.06, 0, 0), (1, 0, 0))),
     "hammer": LiftObject("hammer", _make_hammer, GraspSpec((0, 0, 0.02), (0, 0, 1))),
@@ -128,6 +139,7 @@ class LiftTask(Task):
         self._rest_z = 0.0
         self._max_lift = 0.0
         self._first_close: tuple[int, float, float] | None = None
+        self._rays: FingerRays | None = None  # built on the first observation, for the task's model
         sym = self.spec.body_symmetry
         self.symmetry_order = round(2 * np.pi / sym) if sym else 1
 
@@ -159,7 +171,18 @@ class LiftTask(Task):
         xy = np.array([rng.uniform(-0.08, 0.08), rng.uniform(-0.12, 0.12)])
         yaw = Rotation.from_euler("z", rng.uniform(-np.pi, np.pi))
         quat = (yaw * Rotation.from_quat(self._base_quat())).as_quat()
+        if self.spec.half_size_range is not None:
+            self._resize(float(rng.uniform(*self.spec.half_size_range)))
         self.rest_on_table(self.obj, xy, quat)
+
+    def _resize(self, half: float) -> None:
+        """Makes the box's geoms (collision and visual) cubes of this half-size: their size, bounding box and
+        bounding sphere, which collisions, ``rest_on_table`` and ``body_extent`` read."""
+        m = self.sim.model._model
+        for g in np.flatnonzero(m.geom_bodyid == self._body):
+            m.geom_size[g, :3] = half
+            m.geom_aabb[g, 3:] = half
+            m.geom_rbound[g] = half * np.sqrt(3.0)
 
     def _settle(self, steps: int = 5) -> None:
         super()._settle(steps)
@@ -197,10 +220,19 @@ class LiftTask(Task):
     def _body(self) -> int:
         return self.body_id(self.obj.root_body)
 
+    def finger_rays(self) -> np.ndarray:
+        """(RAYS,) the finger range rays at this step (``sim.rays``)."""
+        model = self.mj_model()
+        if self._rays is None or self._rays.model is not model:
+            self._rays = FingerRays(model)
+        return self._rays.read(self.mj_data())
+
     def observe(self) -> np.ndarray:
         pos, quat = self.body_pose(self._body)
         eef = self.robot_obs()
-        return np.concatenate([eef, pos, quat_to_rot6d(quat), pos - eef[0:3], self.perceived_extent()])
+        return np.concatenate(
+            [eef, pos, quat_to_rot6d(quat), pos - eef[0:3], self.perceived_extent(), self.finger_rays()]
+        )
 
     def check_success(self) -> bool:
         return bool(self.sim.data.body_xpos[self._body][2] > self._rest_z + LIFT_HEIGHT)

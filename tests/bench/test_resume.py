@@ -40,3 +40,33 @@ def test_the_report_compares_each_takeover_with_the_same_seeds_alone(tmp_path, c
     assert late["success_rate"] == row["alone"] and late["rescued"] == late["broke"] == 0
     with pytest.raises(SystemExit):
         main([*argv[:5], "-1"])  # a takeover step must be >= 0
+
+
+def test_the_pregrasp_probe_hands_back_where_the_operator_placed_the_open_gripper(tmp_path, capsys):
+    folder = tiny_policy_folder(tmp_path / "lift", "lift-cube", threshold=1.0)
+    out = tmp_path / "pregrasp.json"
+    argv = ["report", "pregrasp", "--policy", str(folder), "--tasks", "lift-cube", "lift-hammer", "--episodes", "2"]
+    assert main([*argv, "--seed", "4", "--out", str(out), "--quiet"]) == 0
+    assert "| lift-hammer |" in capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    cube, hammer = doc["tasks"]
+    assert (cube["task"], hammer["task"], cube["seeds"]) == ("lift-cube", "lift-hammer", [4, 5])
+    for row in (cube, hammer):
+        for ep in row["episodes"]:
+            # the operator drove from the first step to the grasp (tens of steps), then the policy had the rest
+            assert 10 < ep["operator_steps"] < 100 and ep["steps_after"] > 0
+            assert not ep["success"] or ep["closed"]  # a lift needs the gripper closed
+        assert row["alone"] == 0.0  # the untrained policy never lifts alone
+
+
+def test_the_operator_hands_back_at_the_grasp_before_closing():
+    policy = tiny_policy("lift-cube")
+    cfg = AssistConfig(
+        hand_back="continuous", return_after=None, operator_hands_back=True, operator_hands_back_at="placed", n_envs=1
+    )
+    (ep,), _ = run_assisted(policy, "lift-cube", [2], AtStep(policy, AtStepConfig(at=0)), config=cfg, progress=False)
+    ran = [i for i, op in enumerate(ep.operator) if op]
+    assert ran == list(range(1, ran[-1] + 1))  # one hold step, then the operator without a break
+    assert all(a[9] < 0 for a, op in zip(ep.actions, ep.operator, strict=True) if op)  # it never closed
+    with pytest.raises(ValueError, match="operator_hands_back_at"):
+        AssistConfig(operator_hands_back_at="lifted")

@@ -51,12 +51,20 @@ def test_a_demo_run_exports_loads_imports_and_trains(tmp_path, capsys):
     # the task's layout is checked: another task's observation is refused, naming the feature
     assert main(["import", "lerobot", str(root), str(tmp_path / "x"), "--task", "open-drawer", "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert "does not fit task open-drawer" in err and "observation.state: shape [26], the task's is [23]" in err
-    assert "missing drawer_opening, handle_pos; extra object_pos, object_rot6d, object_to_eef_pos, object_extent" in err
+    lift_dim = make_task("lift-cube").obs_spec.dim
+    assert (
+        "does not fit task open-drawer" in err and f"observation.state: shape [{lift_dim}], the task's is [23]" in err
+    )
+    assert (
+        "missing drawer_opening, handle_pos; extra object_pos, object_rot6d, object_to_eef_pos, object_extent, "
+        "finger_rays" in err
+    )
     assert not (tmp_path / "x").exists()
 
     # a policy is not run on a task whose observation it was not trained on, and the error names the channels
     assert main(["rollout", "--policy", str(out), "--task", "open-drawer", "--episodes", "1", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"hitl rollout: error: policy {out} cannot run task open-drawer: it was trained on")
-    assert "missing object_pos, object_rot6d, object_to_eef_pos, object_extent; extra drawer_opening" in err
+    assert (
+        "missing object_pos, object_rot6d, object_to_eef_pos, object_extent, finger_rays; extra drawer_opening" in err
+    )

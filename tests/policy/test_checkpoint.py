@@ -14,6 +14,7 @@ from tests.helpers import tiny_policy
 
 ROOT = Path(__file__).resolve().parents[2]
 CUP = make_task("cup-stack").obs_spec.labels()
+LIFT_DIM = make_task("lift-cube").obs_spec.dim
 
 
 def _info(task: str, **config) -> dict:
@@ -42,7 +43,7 @@ def test_the_bundled_policies_record_their_tasks_layout_and_fit_what_they_serve(
         "missing green_pos, green_rot6d, red_pos_observed, green_to_eef_pos, red_observed_to_green_pos, red_visible"
         in message
     )
-    assert "extra object_pos, object_rot6d, object_to_eef_pos, object_extent" in message
+    assert "extra object_pos, object_rot6d, object_to_eef_pos, object_extent, finger_rays" in message
 
 
 def test_a_layout_of_the_same_size_that_differs_is_refused_by_channel_name():
@@ -65,8 +66,9 @@ def test_a_checkpoint_without_a_layout_is_judged_by_its_observation_size(tmp_pat
     with pytest.raises(CheckpointError) as err:
         check_fits(old, "open-drawer", "old")
     assert str(err.value) == (
-        "policy old cannot run task open-drawer: it takes 26-dim observations (its config.json records no layout), "
-        "task open-drawer gives 23: [eef_pos(3), eef_rot6d(6), gripper_qpos(2), drawer_opening(3), handle_pos(9)]"
+        f"policy old cannot run task open-drawer: it takes {LIFT_DIM}-dim observations (its config.json records no "
+        "layout), task open-drawer gives 23: [eef_pos(3), eef_rot6d(6), gripper_qpos(2), drawer_opening(3), "
+        "handle_pos(9)]"
     )
 
 

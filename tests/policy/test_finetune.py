@@ -7,6 +7,7 @@ import pytest
 
 from policy.finetune import FinetuneConfig, FinetuneDataError, TaskResult, finetune_policy, gate
 from policy.train import TrainConfig, TrainState, train_policy
+from sim.tasks.lift import LIFT_OBS
 from storage import keys
 from storage.segments import SegmentWriter
 from storage.takeovers import load_takeovers
@@ -113,7 +114,7 @@ def test_fitting_on_own_episodes_raises_the_threshold_to_the_most_doubtful_succe
 
 def _data(n=40, seed=0):
     rng = np.random.default_rng(seed)
-    obs = rng.normal(size=(n, 1, 26)).astype(np.float32)
+    obs = rng.normal(size=(n, 1, LIFT_OBS.dim)).astype(np.float32)  # tiny_policy()'s: lift-cube's observations
     act = np.concatenate(
         [rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0], (n, 3)), np.tile([0, 1, 0, 1, 0, 0, -1.0], (n, 1))], 1
     ).astype(np.float32)[:, None]

@@ -23,7 +23,7 @@ FRAME = ObjectFrame.from_obs_spec(LIFT_OBS)
 
 
 def _scene(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """n lift observations (n, 26) and actions (n, 10) with consistent geometry: object_to_eef_pos
+    """n lift observations (n, obs_dim) and actions (n, 10) with consistent geometry: object_to_eef_pos
     is object minus end effector, rotations are proper."""
     rng = np.random.default_rng(seed)
     obs = np.zeros((n, LIFT_OBS.dim))
@@ -100,7 +100,7 @@ def test_heading_falls_back_to_zero_when_the_x_axis_is_vertical():
 @pytest.mark.parametrize(
     "bad",
     [
-        {"object_pos": 11, "object_rot6d": 14, "points": [24]},  # runs past 26
+        {"object_pos": 11, "object_rot6d": 14, "points": [LIFT_OBS.dim - 2]},  # runs past the observation
         {"object_pos": 11, "object_rot6d": 14, "points": [0], "vectors": [1]},  # overlap
         {"object_pos": -1, "object_rot6d": 14},
         {"object_pos": 11, "object_rot6d": 14, "turns": [0]},  # unknown key
@@ -181,7 +181,7 @@ def test_object_frame_training_and_checkpoint_round_trip(tmp_path):
     far = obs.copy()
     far[:, SL["object_extent"]] = 0.3
     assert loaded.widen_obs_range(far[:, None]) == 3
-    doc["policy"]["object_frame"]["points"] = [25]
+    doc["policy"]["object_frame"]["points"] = [LIFT_OBS.dim - 1]  # runs past the observation
     (tmp_path / "p" / "config.json").write_text(__import__("json").dumps(doc))
     with pytest.raises(CheckpointError, match="object frame"):
         load_policy(tmp_path / "p")
@@ -215,3 +215,61 @@ def test_train_command_trains_in_the_object_frame(tmp_path, capsys):
     bad = tmp_path / "drawer"
     assert main(["train", "--task", "open-drawer", "--out", str(bad), *small]) == 2
     assert "object_pos" in capsys.readouterr().err and not bad.exists()
+
+
+def test_a_shifted_object_moves_its_position_and_the_vectors_from_it_only():
+    obs, _ = _scene(6)
+    offset = np.random.default_rng(3).uniform(-0.04, 0.04, (6, 3)).astype(np.float32)
+    hist = torch.as_tensor(np.stack([obs, obs], axis=1))  # (B, H=2, obs_dim): the same offset at both steps
+    out = FRAME.shifted(hist, torch.as_tensor(offset)).numpy()
+    moved = {"object_pos", "object_to_eef_pos"}
+    for h in range(2):
+        for name, sl in SL.items():
+            expect = obs[:, sl] + (offset if name in moved else 0.0)
+            assert np.allclose(out[:, h, sl], expect, atol=1e-6), name
+    # in the frame of the shifted object, the end effector sits the offset away from where it sat
+    framed = FRAME.observation(torch.as_tensor(out[:, :1]))[:, 0].numpy()
+    plain = FRAME.observation(torch.as_tensor(obs[:, None]))[:, 0].numpy()
+    assert not np.allclose(framed[:, SL["eef_pos"]], plain[:, SL["eef_pos"]], atol=1e-3)
+
+
+def test_a_raised_end_effector_moves_with_its_targets_and_the_object_stays():
+    obs, act = _scene(5)
+    height = torch.as_tensor(np.linspace(-0.02, 0.02, 5))
+    hist, chunk = torch.as_tensor(np.stack([obs, obs], axis=1)), torch.as_tensor(np.stack([act] * 3, axis=1))
+    out, acts = FRAME.raised(hist, chunk, height)
+    out, acts, dz = out.numpy(), acts.numpy(), height.numpy()[:, None]
+    for h in range(2):
+        assert np.allclose(out[:, h, SL["eef_pos"]][:, 2:], obs[:, SL["eef_pos"]][:, 2:] + dz)
+        assert np.allclose(out[:, h, SL["object_to_eef_pos"]][:, 2:], obs[:, SL["object_to_eef_pos"]][:, 2:] - dz)
+        rest = [
+            c for n, sl in SL.items() for c in range(sl.start, sl.stop) if n not in ("eef_pos", "object_to_eef_pos")
+        ]
+        assert np.array_equal(out[:, h, rest], obs[:, rest])  # the object, the rays, the gripper: as they were
+        assert np.array_equal(out[:, h, SL["eef_pos"]][:, :2], obs[:, SL["eef_pos"]][:, :2])
+    assert np.allclose(acts[..., 2], act[:, None, 2] + dz) and np.array_equal(acts[..., 3:], chunk.numpy()[..., 3:])
+    # in the object's frame, the end effector and its targets keep their relation
+    assert np.allclose(acts[:, 0, 2] - out[:, 0, SL["eef_pos"]][:, 2], act[:, 2] - obs[:, SL["eef_pos"]][:, 2])
+
+
+def test_origin_jitter_trains_an_object_frame_policy_only():
+    from policy.train import TrainConfig, train_policy
+
+    obs, act = _scene(64)
+    data = {keys.OBS: obs[:, None], keys.ACTION: act[:, None]}
+    for frame, ok in ((FRAME, True), (None, False)):
+        cfg = DiffusionPolicyConfig(
+            obs_dim=LIFT_OBS.dim, network="mlp", mlp_hidden=16, step_embed_dim=8, object_frame=frame
+        )
+        policy = DiffusionPolicy(cfg)
+        policy.fit_normalizers(obs, act, action_bounds=(LIFT_WORKSPACE.low, LIFT_WORKSPACE.high))
+        tcfg = TrainConfig(steps=3, batch_size=8, warmup_steps=1, origin_jitter=0.03, height_jitter=0.02)
+        if ok:
+            train_policy(policy, data, None, tcfg, progress=False)
+        else:
+            with pytest.raises(ValueError, match="object-frame"):
+                train_policy(policy, data, None, tcfg, progress=False)
+    with pytest.raises(ValueError, match="origin_jitter"):
+        TrainConfig(origin_jitter=-0.01)
+    with pytest.raises(ValueError, match="height_jitter"):
+        TrainConfig(height_jitter=True)

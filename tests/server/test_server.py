@@ -130,7 +130,8 @@ def test_takeover_round_trip_records_a_segment(service):
     assert obs.shape[0] == labels.shape[0] == 3 and np.isfinite(labels).all()
     assert segment.meta["robot"] == 0 and segment.end["status"] == "closed"
     # the file names its observation's channels (what fine-tuning checks against the policy's layout)
-    assert segment.meta["obs_labels"] == make_task("lift-cube").obs_spec.labels() and obs.shape[1] == 26
+    lift = make_task("lift-cube").obs_spec
+    assert segment.meta["obs_labels"] == lift.labels() and obs.shape[1] == lift.dim
     assert [s.command["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
     # every score but the denoising U (recorded on its own): the asking signal (the default) and the shadows
     assert all(set(s.shadow) == {"spread-stall", "output-variance", "random"} for s in segment.steps)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from sim.experts import CARRY_CLEARANCE, OperatorStyle, operator_rng
-from sim.registry import make_expert
+from sim.registry import make_expert, make_task
 from sim.spaces import TeleopCommand
 
 
@@ -53,3 +53,23 @@ def test_a_carried_cup_taken_over_again_goes_on_at_its_height(task_cache):
     assert aim == pytest.approx(0.0, abs=1e-9) and max(np.abs(heights)) < 0.006
     aim, _ = lowered_then_taken_over("replan")
     assert abs(aim) > 1e-3  # its plan's own carry height (drawn afresh), not the height it stands at
+
+
+def test_the_expert_counts_as_placed_only_at_the_grasp_with_the_gripper_open():
+    task = make_task("lift-cube")
+    task.reset(5)
+    expert = make_expert("lift-cube")
+    expert.reset(task, np.random.default_rng(1))
+    assert not expert.placed(task)
+    placed_at = None
+    for step in range(200):
+        if expert.placed(task):
+            placed_at = step
+            break
+        task.step(task.teleop(expert.act(task)).action)
+    assert placed_at is not None and expert.phase == "close"
+    grasp = task.privileged()["grasp_point"]
+    assert np.linalg.norm(task.ee_pose()[0] - grasp) < 0.02
+    for _ in range(12):  # it closes: no longer placed
+        task.step(task.teleop(expert.act(task)).action)
+    assert not expert.placed(task)

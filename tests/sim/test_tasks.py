@@ -160,6 +160,11 @@ def test_symmetric_observation_is_what_the_turned_scene_observes(task_cache, nam
         assert task.symmetric_observation(obs, np.array(1)) is obs
         return
     assert name == "lift-cube" and task.symmetry_order == 4
+    # the turned scenes below are observed after sim.forward(); observe the original after one too. After a physics
+    # step the bodies' poses lag the joints by that step (mj_step integrates after computing them): the fingers, still
+    # opening at the reset, stand 0.25 mm further apart once recomputed, and finger_rays reads the gap from them
+    task.sim.forward()
+    obs = task.observe()
     pos, quat = task.body_pose(task.body_id(task.obj.root_body))
     for k in (1, 2, 3):
         turned = Rotation.from_euler("z", k * np.pi / 2) * Rotation.from_quat(quat)

@@ -26,7 +26,7 @@ def test_missing_extra_and_reordered_channels_are_named():
     assert difference(cup, [label for label in cup if label != "green_pos[1]"]) == ["missing green_pos[1]"]
     assert difference(cup, LIFT.labels()) == [
         "missing green_pos, green_rot6d, red_pos_observed, green_to_eef_pos, red_observed_to_green_pos, red_visible",
-        "extra object_pos, object_rot6d, object_to_eef_pos, object_extent",
+        "extra object_pos, object_rot6d, object_to_eef_pos, object_extent, finger_rays",
     ]
     swapped = cup[:3] + cup[9:11] + cup[3:9] + cup[11:]  # gripper before the rotation: the same size
     assert difference(cup, swapped) == [
@@ -49,5 +49,5 @@ def test_files_are_judged_only_on_a_layout_they_record():
     out = mismatched(files, lift)
     assert list(out) == ["cup.mcap"]
     assert out["cup.mcap"].startswith("recorded with another observation layout ([eef_pos(3), eef_rot6d(6)")
-    assert "missing object_pos, object_rot6d, object_to_eef_pos, object_extent" in out["cup.mcap"]
+    assert "missing object_pos, object_rot6d, object_to_eef_pos, object_extent, finger_rays" in out["cup.mcap"]
     assert recorded({"obs_labels": "eef_pos"}) is None and recorded(None) is None and recorded({}) is None

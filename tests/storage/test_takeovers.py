@@ -81,16 +81,17 @@ def test_a_segment_recorded_with_another_observation_layout_is_left_out_naming_i
     assert out.used == ["same.mcap", "old.mcap"] and len(out) == 10
     assert out.skipped["swapped.mcap"] == (
         "recorded with another observation layout than the policy's (task lift-nut, observations [eef_pos(3), "
-        "eef_rot6d(6), gripper_qpos(2), object_to_eef_pos(3), object_pos(3), object_rot6d(6), object_extent(3)]): "
-        "the same channels in another order (at channel 11: object_to_eef_pos, not object_pos)"
+        "eef_rot6d(6), gripper_qpos(2), object_to_eef_pos(3), object_pos(3), object_rot6d(6), object_extent(3), "
+        "finger_rays(6)]): the same channels in another order (at channel 11: object_to_eef_pos, not object_pos)"
     )
     assert out.skipped["cup.mcap"].startswith(
         "recorded with another observation layout than the policy's (task cup-stack"
     )
     assert (
-        "missing object_pos, object_rot6d, object_to_eef_pos, object_extent; extra green_pos" in out.skipped["cup.mcap"]
+        "missing object_pos, object_rot6d, object_to_eef_pos, object_extent, finger_rays; extra green_pos"
+        in out.skipped["cup.mcap"]
     )
     # without the policy's layout (an older checkpoint), segments are judged by their size alone
     old_policy = load_takeovers(paths, obs_dim=lift.dim)
     assert old_policy.used == ["same.mcap", "old.mcap", "swapped.mcap"]
-    assert "the policy takes 26 per step" in old_policy.skipped["cup.mcap"]
+    assert f"the policy takes {lift.dim} per step" in old_policy.skipped["cup.mcap"]

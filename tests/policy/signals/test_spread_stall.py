@@ -5,8 +5,10 @@ import torch
 from policy.signals import SignalInput, TriggerState, load_signal, make_signal, save_signal
 from policy.signals.base import CalibrationData, SignalError, StepSet
 from policy.signals.spread_stall import SpreadStallConfig
+from sim.tasks.lift import LIFT_OBS
 from tests.helpers import tiny_policy
 
+OBS_DIM = LIFT_OBS.dim  # tiny_policy()'s observation: lift-cube's
 OPEN, CLOSED = -1.0, 1.0
 CALIBRATION = {
     "threshold": 1.0,
@@ -30,7 +32,7 @@ def _signal(monkeypatch, **config):
         field["spread"][:], field["novelty"][:] = spread, novelty
         current = torch.as_tensor(_action([0, 0, 1]))[None]
         chunk = torch.as_tensor(_action([motion, 0, 1]))[None, None]
-        scores = signal.score(SignalInput(torch.zeros(1, 1, 26), current, np.asarray([0]), action=chunk))
+        scores = signal.score(SignalInput(torch.zeros(1, 1, OBS_DIM), current, np.asarray([0]), action=chunk))
         wants = signal.wants_help(scores, TriggerState(np.asarray([0]), np.asarray([teleop])))
         return scores, bool(wants[0])
 
@@ -71,10 +73,10 @@ def test_a_new_scene_keeps_the_operators_progress(monkeypatch):
     # it asked at x = 0; the operator drives it 3 cm across
     current = torch.as_tensor(_action([0.03, 0, 1]))[None]
     chunk = torch.as_tensor(_action([0.03, 0, 1]))[None, None]
-    batch = SignalInput(torch.zeros(1, 1, 26), current, np.asarray([0]), action=chunk)
+    batch = SignalInput(torch.zeros(1, 1, OBS_DIM), current, np.asarray([0]), action=chunk)
     signal.wants_help(signal.score(batch), TriggerState(np.asarray([0]), np.asarray([True])))
     plan_back = torch.as_tensor(_action([0.015, 0, 1]))[None, None]
-    back = SignalInput(torch.zeros(1, 1, 26), current, np.asarray([0]), action=plan_back)
+    back = SignalInput(torch.zeros(1, 1, OBS_DIM), current, np.asarray([0]), action=plan_back)
     scores = signal.score(back)
     assert signal.wants_help(scores, TriggerState.autonomous([0]))[0]
     assert signal.explain(scores, 0) == "new scene, the policy would undo the operator's work"
@@ -104,7 +106,7 @@ def test_wants_help_needs_the_scores_of_the_same_robots(monkeypatch):
 def _steps(n=12):
     pos = np.stack([_action([0.01 * i, 0, 1]) for i in range(n)])
     return StepSet(
-        obs=np.random.default_rng(0).uniform(-1, 1, (n, 1, 26)).astype(np.float32),
+        obs=np.random.default_rng(0).uniform(-1, 1, (n, 1, OBS_DIM)).astype(np.float32),
         action=pos[:, None],
         current=pos,
         episode=np.zeros(n, dtype=np.int64),

@@ -172,7 +172,8 @@ def test_only_corrupt_segments_fail_the_job_with_their_names_and_register_nothin
 
 def test_takeovers_recorded_with_another_observation_layout_are_not_trained_on_and_named(store):
     sessions, data_dir, parent = store
-    # the same size as the policy's observation, the object's extent where its position was
+    # the same size as the policy's observation, the object's extent (and the finger rays after it) where its
+    # position was
     moved = LABELS[:11] + LABELS[23:] + LABELS[11:23]
     for i, name in enumerate(("good-1", "good-2")):
         write_segment(data_dir / "segments" / f"{name}.mcap", len(LABELS), seed=i, obs_labels=moved)
@@ -182,8 +183,8 @@ def test_takeovers_recorded_with_another_observation_layout_are_not_trained_on_a
     assert summary["status"] == "failed" and "no usable sample" in summary["error"]
     why = (
         "recorded with another observation layout than the policy's (task lift-nut, observations [eef_pos(3), "
-        "eef_rot6d(6), gripper_qpos(2), object_extent(3), object_pos(3), object_rot6d(6), object_to_eef_pos(3)]): "
-        "the same channels in another order (at channel 11: object_extent, not object_pos)"
+        "eef_rot6d(6), gripper_qpos(2), object_extent(3), finger_rays(6), object_pos(3), object_rot6d(6), "
+        "object_to_eef_pos(3)]): the same channels in another order (at channel 11: object_extent, not object_pos)"
     )
     assert f"good-1.mcap: {why}" in summary["error"] and any(f"skipped segment good-2.mcap: {why}" in x for x in lines)
     assert [v.ref for v in registry.versions(sessions, "lift-cube")] == ["lift-cube@1"]
@@ -213,10 +214,11 @@ def test_episodes_recorded_with_another_observation_layout_are_refused_naming_th
     assert summary["status"] == "failed"
     assert summary["error"] == (
         f"1 episode(s) of {extra} were recorded with another observation layout than the policy's [eef_pos(3), "
-        "eef_rot6d(6), gripper_qpos(2), object_pos(3), object_rot6d(6), object_to_eef_pos(3), object_extent(3)]: "
+        "eef_rot6d(6), gripper_qpos(2), object_pos(3), object_rot6d(6), object_to_eef_pos(3), object_extent(3), "
+        "finger_rays(6)]: "
         "moved.mcap: recorded with another observation layout ([eef_pos(3), eef_rot6d(6), gripper_qpos(2), "
-        "object_extent(3), object_pos(3), object_rot6d(6), object_to_eef_pos(3)]): the same channels in another "
-        "order (at channel 11: object_extent, not object_pos)"
+        "object_extent(3), finger_rays(6), object_pos(3), object_rot6d(6), object_to_eef_pos(3)]): the same channels "
+        "in another order (at channel 11: object_extent, not object_pos)"
     )
 
 
@@ -225,7 +227,7 @@ def test_a_gate_task_the_parent_cannot_run_fails_the_job_before_it_trains(store)
     request = JobRequest(policy="lift-cube", config=TINY, eval_tasks=("lift-nut", "open-drawer"))
     [summary] = FinetuneRunner(sessions, data_dir, progress=False).run(request)
     assert summary["status"] == "failed" and "cannot run task open-drawer" in summary["error"]
-    assert "missing object_pos, object_rot6d, object_to_eef_pos, object_extent" in summary["error"]
+    assert "missing object_pos, object_rot6d, object_to_eef_pos, object_extent, finger_rays" in summary["error"]
     assert not (data_dir / "finetune" / "job-1" / "train").exists()  # nothing trained
 
 

@@ -67,7 +67,8 @@ def test_a_policy_trained_on_another_observation_layout_is_refused_naming_the_ch
     from sim.registry import make_task
 
     lift = make_task("lift-cube").obs_spec.labels()
-    # the same size as lift-cube's observation, but the object's extent where its rotation was
+    # the same size as lift-cube's observation, but the object's extent (and the finger rays after it) where its
+    # position was
     moved = lift[:11] + lift[23:] + lift[11:23]
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", 0.5, obs_labels=moved)
     with pytest.raises(ServiceError) as err:
@@ -75,14 +76,17 @@ def test_a_policy_trained_on_another_observation_layout_is_refused_naming_the_ch
     assert err.value.status == 422
     assert err.value.message == (
         f"policy {policy} cannot run task lift-cube: it was trained on observations [eef_pos(3), eef_rot6d(6), "
-        "gripper_qpos(2), object_extent(3), object_pos(3), object_rot6d(6), object_to_eef_pos(3)], task lift-cube "
-        "gives [eef_pos(3), eef_rot6d(6), gripper_qpos(2), object_pos(3), object_rot6d(6), object_to_eef_pos(3), "
-        "object_extent(3)]: the same channels in another order (at channel 11: object_pos, not object_extent)"
+        "gripper_qpos(2), object_extent(3), finger_rays(6), object_pos(3), object_rot6d(6), object_to_eef_pos(3)], "
+        "task lift-cube gives [eef_pos(3), eef_rot6d(6), gripper_qpos(2), object_pos(3), object_rot6d(6), "
+        "object_to_eef_pos(3), object_extent(3), finger_rays(6)]: the same channels in another order (at channel 11: "
+        "object_pos, not object_extent)"
     )
     # one that records the task's layout, or none (older checkpoints: by size), is served
     fits = tiny_policy_folder(tmp_path / "fits", "lift-cube", 0.5, obs_labels=lift)
     assert load_slot(_settings(tmp_path, fits), fits, "lift-nut", 1).task == "lift-nut"
     old = tiny_policy_folder(tmp_path / "old", "lift-cube", 0.5)
-    with pytest.raises(ServiceError, match="26-dim observations .* no layout.*task cup-stack gives 30") as err:
+    with pytest.raises(
+        ServiceError, match=f"{len(lift)}-dim observations .* no layout.*task cup-stack gives 30"
+    ) as err:
         load_slot(_settings(tmp_path, old), old, "cup-stack", 1)
     assert err.value.status == 422
