@@ -33,6 +33,10 @@ from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
 
 LIFT_HEIGHT = 0.04  # success: the object's root is this much above where it rested
+# the cube's half-size per episode (m): 2.2-4.4 cm wide, so the gap the closed fingers stop at varies and a policy
+# learns to lift once they touch (``finger_rays``), not at one cube's width; every unseen object is still more
+# than twice the widest cube along some axis
+CUBE_HALF_SIZES = (0.011, 0.022)
 EXTENT_NOISE = 0.002  # m, std of the perceived bounding box's error per axis and step
 LIFT_WORKSPACE = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
 LIFT_OBS = ObsSpec(
@@ -113,6 +117,7 @@ LIFT_OBJECTS: dict[str, LiftObject] = {
         _make_cube,
         GraspSpec((0, 0, 0), (1, 0, 0), symmetry=np.pi / 2),
         body_symmetry=np.pi / 2,
+        half_size_range=CUBE_HALF_SIZES,
     ),
     "nut": LiftObject("nut", _make_nut, GraspSpec((0.06, 0, 0), (1, 0, 0))),
     "hammer": LiftObject("hammer", _make_hammer, GraspSpec((0, 0, 0.02), (0, 0, 1))),
