@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	lift-baselines-hitl-docs resume-docs nights-docs nights-lift-docs asking-dev-docs \
-	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs drawer-steer-docs clean
+	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs lift-variants-docs drawer-steer-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -197,6 +197,25 @@ resume-docs: install
 # docs/benchmarks/hitl.md, "The floor": the oracle's fewest operator steps for 100% success (best-of-sweep), on the
 # bundled policies, with the simulated operator in carry-on style, and on cup-stack and the drawer with the operator
 # that replans at each request (before) (about 25 min on 2 cores).
+# docs/benchmarks/hitl.md, "Handed back at the pre-grasp pose": the bundled lift policy handed back with the open
+# gripper placed at each lift object's grasp, on 12 development episodes each (about 2 min on 2 cores).
+pregrasp-docs: install
+	$(BIN)/hitl report pregrasp --policy policies/lift-cube --tasks lift-cube lift-nut lift-hammer lift-hook \
+		--episodes 12 --seed 2000 --threads 2 --quiet --out docs/results/policy/pregrasp-lift.json
+
+# docs/benchmarks/hitl.md, "Lift: finger rays": two lift policies trained with the object shifted against the end
+# effector (tried, not bundled), on the demonstrations of `make policy-docs`, handed back at the pre-grasp pose
+# (about 25 min on 2 cores).
+LIFT_PREGRASP := --tasks lift-cube lift-nut lift-hammer lift-hook --episodes 12 --seed 2000 --threads 2 --quiet
+lift-variants-docs: install
+	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart --out runs/lift-cube-jxy --frame object \
+		--origin-jitter 0.04 --threads 1 --quiet
+	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart --out runs/lift-cube-jz --frame object \
+		--origin-jitter 0.03 --height-jitter 0.02 --threads 1 --quiet
+	$(BIN)/hitl report pregrasp --policy runs/lift-cube-jxy $(LIFT_PREGRASP) --out docs/results/policy/pregrasp-lift-jitter-xy.json
+	$(BIN)/hitl report pregrasp --policy runs/lift-cube-jz $(LIFT_PREGRASP) \
+		--out docs/results/policy/pregrasp-lift-jitter-xy-height.json
+
 floor-docs: install
 	$(BIN)/hitl bench floor --policy-root policies --report docs/benchmarks/hitl.md --section floor-c1 \
 		--cache runs/bench-floor --json --quiet > docs/results/hitl/floor-c1.json

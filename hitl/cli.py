@@ -25,7 +25,8 @@ code is in ``bench/``):
                 floor, finetune, console: each prints its measurements as JSON
   report        sanity (the paper's sanity checks), separation (every signal's AUROC), novelty (how far
                 states lie outside a policy's training range), resume (whether a policy finishes after
-                a few operator steps)
+                a few operator steps), pregrasp (whether the lift policy closes and lifts once the
+                gripper is placed at the grasp)
   plot          uncertainty: figures of U along rollouts
   docs          screenshots: the console's pictures, in headless Chromium
 """

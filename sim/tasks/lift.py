@@ -33,10 +33,6 @@ from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
 
 LIFT_HEIGHT = 0.04  # success: the object's root is this much above where it rested
-# the cube's half-size per episode (m): 2.2-4.4 cm wide, so the gap the closed fingers stop at varies and a policy
-# learns to lift once they touch (``finger_rays``), not at one cube's width; every unseen object is still more
-# than twice the widest cube along some axis
-CUBE_HALF_SIZES = (0.011, 0.022)
 EXTENT_NOISE = 0.002  # m, std of the perceived bounding box's error per axis and step
 LIFT_WORKSPACE = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
 LIFT_OBS = ObsSpec(
@@ -107,8 +103,6 @@ class LiftObject:
     # yaw about the object's vertical axis through its body origin that leaves it unchanged
     # (the cube: a quarter turn); None for objects with no such symmetry
     body_symmetry: float | None = None
-    # a box drawn per episode with a half-size in this range (m), the same on every axis; None: as built
-    half_size_range: tuple[float, float] | None = None
 
 
 LIFT_OBJECTS: dict[str, LiftObject] = {
@@ -117,7 +111,6 @@ LIFT_OBJECTS: dict[str, LiftObject] = {
         _make_cube,
         GraspSpec((0, 0, 0), (1, 0, 0), symmetry=np.pi / 2),
         body_symmetry=np.pi / 2,
-        half_size_range=CUBE_HALF_SIZES,
     ),
     "nut": LiftObject("nut", _make_nut, GraspSpec((0.06, 0, 0), (1, 0, 0))),
     "hammer": LiftObject("hammer", _make_hammer, GraspSpec((0, 0, 0.02), (0, 0, 1))),
@@ -176,18 +169,7 @@ class LiftTask(Task):
         xy = np.array([rng.uniform(-0.08, 0.08), rng.uniform(-0.12, 0.12)])
         yaw = Rotation.from_euler("z", rng.uniform(-np.pi, np.pi))
         quat = (yaw * Rotation.from_quat(self._base_quat())).as_quat()
-        if self.spec.half_size_range is not None:
-            self._resize(float(rng.uniform(*self.spec.half_size_range)))
         self.rest_on_table(self.obj, xy, quat)
-
-    def _resize(self, half: float) -> None:
-        """Makes the box's geoms (collision and visual) cubes of this half-size: their size, bounding box and
-        bounding sphere, which collisions, ``rest_on_table`` and ``body_extent`` read."""
-        m = self.sim.model._model
-        for g in np.flatnonzero(m.geom_bodyid == self._body):
-            m.geom_size[g, :3] = half
-            m.geom_aabb[g, 3:] = half
-            m.geom_rbound[g] = half * np.sqrt(3.0)
 
     def _settle(self, steps: int = 5) -> None:
         super()._settle(steps)
