@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 .PHONY: install demo test lint docs policy-docs signals-docs loop-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	lift-baselines-hitl-docs resume-docs nights-docs nights-lift-docs asking-dev-docs \
-	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs lift-variants-docs drawer-steer-docs clean
+	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs lift-variants-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -50,7 +50,7 @@ policy-docs: install
 	$(BIN)/hitl demos --task open-drawer --episodes 300 --pos-noise 0.01 --rot-noise 0.15 --out data/demos/open-drawer-dart --quiet
 	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart --out runs/lift-cube --frame object --threads 1
 	$(BIN)/hitl train --task cup-stack --data data/demos/cup-stack-dart --out runs/cup-stack --threads 1
-	$(BIN)/hitl train --task open-drawer --data data/demos/open-drawer-dart --out runs/open-drawer --threads 1
+	$(BIN)/hitl train --task open-drawer --data data/demos/open-drawer-dart --out runs/open-drawer --threads 2
 	$(BIN)/hitl calibrate --policy runs/lift-cube --data data/demos/lift-cube-dart
 	$(BIN)/hitl calibrate --policy runs/cup-stack --data data/demos/cup-stack-dart
 	$(BIN)/hitl calibrate --policy runs/open-drawer --data data/demos/open-drawer-dart
@@ -185,18 +185,15 @@ lift-baselines-hitl-docs: install
 		--signals $(LIFT_BASELINES) full-teleop --no-sweep --section lift-baselines --report docs/benchmarks/hitl.md \
 		--figures docs/figures --cache runs/bench-hitl-lift --jobs 2 --json --quiet > docs/results/hitl/lift-baselines.json
 
-# docs/benchmarks/hitl.md, "Do the policies resume after a few operator steps?": one takeover of 4 (and 16) operator
-# steps at a grid of policy steps, then the bundled cup-stack and drawer policies alone, development seeds
-# 2000-2011 (about 1 h on 2 cores).
+# docs/benchmarks/hitl.md, "Do the policies finish after a few operator steps?": one takeover of 4 (and 8) operator
+# steps at the drawer policy's steps 0, 5 and 10, of 4 (and 16) at a grid of the cup-stack policy's steps, then the
+# bundled policy alone, development seeds 2000-2011 (about 45 min on 2 cores, most of it cup-stack).
 resume-docs: install
 	$(BIN)/hitl report resume --policy policies/cup-stack --at 0 40 80 120 160 200 240 --budgets 4 16 --episodes 12 \
 		--threads 2 --out docs/results/policy/resume-cup-stack.json --quiet
-	$(BIN)/hitl report resume --policy policies/open-drawer --at 0 10 20 40 80 --budgets 4 16 --episodes 12 \
+	$(BIN)/hitl report resume --policy policies/open-drawer --at 0 5 10 --budgets 4 8 --episodes 12 \
 		--threads 2 --out docs/results/policy/resume-open-drawer.json --quiet
 
-# docs/benchmarks/hitl.md, "The floor": the oracle's fewest operator steps for 100% success (best-of-sweep), on the
-# bundled policies, with the simulated operator in carry-on style, and on cup-stack and the drawer with the operator
-# that replans at each request (before) (about 25 min on 2 cores).
 # docs/benchmarks/hitl.md, "Handed back at the pre-grasp pose": the bundled lift policy handed back with the open
 # gripper placed at each lift object's grasp, on 12 development episodes each (about 2 min on 2 cores).
 pregrasp-docs: install
@@ -216,37 +213,14 @@ lift-variants-docs: install
 	$(BIN)/hitl report pregrasp --policy runs/lift-cube-jz $(LIFT_PREGRASP) \
 		--out docs/results/policy/pregrasp-lift-jitter-xy-height.json
 
+# docs/benchmarks/hitl.md, "The floor": the oracle's fewest operator steps for 100% success (best-of-sweep), on the
+# bundled policies, with the simulated operator in carry-on style, and on cup-stack and the drawer with the operator
+# that replans at each request (before) (about 25 min on 2 cores).
 floor-docs: install
 	$(BIN)/hitl bench floor --policy-root policies --report docs/benchmarks/hitl.md --section floor-c1 \
 		--cache runs/bench-floor --json --quiet > docs/results/hitl/floor-c1.json
 	$(BIN)/hitl bench floor --tasks cup-stack open-drawer --operator replan --policy-root policies --cache runs/bench-floor \
 		--json --quiet > docs/results/hitl/floor-c1-replan.json
-
-# docs/benchmarks/hitl.md, "Chunks and history on the drawer": two drawer policies beside the bundled one (chunks of 16
-# with 8 executed and 2 observations; 2 observations, chunk 1), trained on the drawer demonstrations of
-# `make policy-docs`: unaided rollouts, one 4- or 8-step steer early on with each hand-back, the floor and the serving
-# cost (about 1 h 15 min on 2 cores).
-DRAWER_STEER := --at 0 5 10 --budgets 4 8 --episodes 12 --threads 1 --quiet
-drawer-steer-docs: install
-	$(BIN)/hitl train --task open-drawer --data data/demos/open-drawer-dart --out runs/open-drawer-c16 --obs-horizon 2 \
-		--action-horizon 16 --n-action-steps 8 --threads 2 --quiet
-	$(BIN)/hitl train --task open-drawer --data data/demos/open-drawer-dart --out runs/open-drawer-h2 --obs-horizon 2 \
-		--threads 2 --quiet
-	for p in c16 h2; do $(BIN)/hitl rollout --policy runs/open-drawer-$$p --task open-drawer --episodes 50 --seed 1000 --envs 10 \
-		--no-uncertainty --threads 1 --json --quiet > docs/results/policy/rollout-open-drawer-$$p.json || exit 1; done
-	$(BIN)/hitl report resume --policy policies/open-drawer $(DRAWER_STEER) --out docs/results/policy/resume-open-drawer-steer-c1.json
-	for p in c16 h2; do $(BIN)/hitl report resume --policy runs/open-drawer-$$p $(DRAWER_STEER) \
-		--out docs/results/policy/resume-open-drawer-steer-$$p.json && \
-		$(BIN)/hitl report resume --policy runs/open-drawer-$$p $(DRAWER_STEER) --resume history \
-		--out docs/results/policy/resume-open-drawer-steer-$$p-history.json || exit 1; done
-	$(BIN)/hitl bench floor --tasks open-drawer --policy open-drawer=runs/open-drawer-c16 --cache runs/bench-floor --json \
-		--quiet > docs/results/hitl/floor-drawer-c16.json
-	for p in c16 h2; do $(BIN)/hitl bench floor --tasks open-drawer --policy open-drawer=runs/open-drawer-$$p --resume history \
-		--cache runs/bench-floor --json --quiet > docs/results/hitl/floor-drawer-$$p-history.json || exit 1; done
-	$(BIN)/hitl bench uncertainty --policy policies/open-drawer --task open-drawer --threads 1 --quiet \
-		> docs/results/serving/uncertainty-open-drawer-c1.json
-	$(BIN)/hitl bench uncertainty --policy runs/open-drawer-c16 --task open-drawer --threads 1 --quiet \
-		> docs/results/serving/uncertainty-open-drawer-c16.json
 
 # docs/benchmarks/nights.md: 3 days of the fleet of configs/nights.toml with the operator bot (10 minutes each) and 2
 # nights of the service's own fine-tuning job between them; the pretraining data is recorded on the first night where

@@ -25,7 +25,8 @@ TABLE_FULL_SIZE = (0.8, 0.8, 0.05)
 CONTROL_FREQ = 20
 EE_FRAME = "ee"
 
-# Robot joint noise at reset (radians, gaussian), seeded per episode.
+# Robot joint noise at reset (radians, gaussian), seeded per episode; a task may set its own
+# (``Task.init_joint_noise``).
 INIT_JOINT_NOISE = 0.02
 
 
@@ -146,7 +147,7 @@ def _make_scene_env(task: Task, horizon: int):
     return SceneEnv(
         robots="Panda",
         controller_configs=config,
-        initialization_noise={"magnitude": INIT_JOINT_NOISE, "type": "gaussian"},
+        initialization_noise={"magnitude": task.init_joint_noise, "type": "gaussian"},
         use_camera_obs=False,
         has_renderer=False,
         has_offscreen_renderer=False,
@@ -172,6 +173,7 @@ class Task(ABC):
     obs_spec: ObsSpec
     action_space: ActionSpace
     object_name: str
+    init_joint_noise: float = INIT_JOINT_NOISE  # radians, gaussian, the robot's joints at reset
 
     def __init__(self) -> None:
         self._env = None

@@ -48,6 +48,8 @@ STUCK_STEPS = 15
 STUCK_MOVED = 0.005
 # a carried cup whose bottom clears the red cup's rim by this much (m) goes on at its height (``from_here``)
 CARRY_CLEARANCE = 0.02
+# m per step of the drawer expert's move across (``OpenDrawerExpert``), drawn per episode; at most 3 cm (SpaceLimits)
+ACROSS_SPEED = (0.024, 0.03)
 # Gripper pointing down (grip-site z = world -z) at yaw 0. The Panda's fingers
 # close along the site's x axis, so a grasped bar lies along the site's y axis;
 # "yaw" is the heading of that y axis. At yaw 0 the fingers close along world y.
@@ -64,7 +66,8 @@ class Phase:
     """Move towards ``target(task)`` (pos (3,), yaw) holding ``gripper``.
 
     The phase ends when within ``tol`` metres (and 0.08 rad of yaw), or after
-    ``max_steps``; then the expert holds still for ``pause`` steps.
+    ``max_steps``; then the expert holds still for ``pause`` steps. ``speed`` (metres per step) overrides
+    the episode's speed for this phase.
     """
 
     name: str
@@ -74,6 +77,7 @@ class Phase:
     pause: int = 0
     max_steps: int = 200
     yaw_tol: float = 0.08  # radians
+    speed: float | None = None
 
 
 def command_towards(
@@ -218,12 +222,13 @@ class Expert:
         phase = self.phases[min(self._i, len(self.phases) - 1)]
         pos, yaw = phase.target(task)
         cur_pos, cur_rot = task.ee_pose()
+        speed = self.speed if phase.speed is None else phase.speed
         if self._pause_left > 0 and not self.done:
             self._pause_left -= 1
             if self._pause_left == 0:
                 self._advance()
-            return command_towards(task, cur_pos, yaw, phase.gripper, self.speed)
-        cmd = command_towards(task, pos, yaw, phase.gripper, self.speed)
+            return command_towards(task, cur_pos, yaw, phase.gripper, speed)
+        cmd = command_towards(task, pos, yaw, phase.gripper, speed)
         if self.done:
             return cmd
         self._steps_in_phase += 1
@@ -418,7 +423,12 @@ class CupStackExpert(Expert):
 
 
 class OpenDrawerExpert(Expert):
-    """Reach the intended drawer's handle from above, grasp it, pull it open."""
+    """Cross to the intended drawer's side at the height it starts from, reach its handle from above, grasp it,
+    pull it open.
+
+    The first phase moves only across the cabinet (along y), fast (``ACROSS_SPEED``): the choice of drawer is
+    made in the first steps, and a few operator steps there leave the gripper where only demonstrations
+    towards the intended drawer pass, so the policy, handed back, goes on to it."""
 
     name = "open-drawer-scripted"
 
@@ -426,6 +436,7 @@ class OpenDrawerExpert(Expert):
         approach_h = float(rng.uniform(0.05, 0.13))
         pull = float(rng.uniform(0.14, 0.17))
         via_h = float(rng.uniform(0.0, 0.08))
+        across_speed = float(rng.uniform(*ACROSS_SPEED))
         mem: dict[str, np.ndarray] = {}
         drawer = task.privileged()["intended"]
         # The handle is a bar along x: fingers close across it, along world y (yaw 0).
@@ -433,6 +444,10 @@ class OpenDrawerExpert(Expert):
 
         def handle(t: Task) -> np.ndarray:
             return t.privileged()["handles"][drawer]
+
+        def across(t: Task):  # along y only, no lower than the approach's height
+            pos, h = t.ee_pose()[0], handle(t)
+            return np.array([pos[0], h[1], max(pos[2], h[2] + approach_h + via_h)]), yaw
 
         def above(t: Task):
             return handle(t) + [0, 0, approach_h + via_h], yaw
@@ -452,6 +467,7 @@ class OpenDrawerExpert(Expert):
         return [
             # tolerances above the 1 cm execution noise of the demonstrations: tighter ones kept the expert
             # hovering at each waypoint for a random number of steps, and the policy learnt to hover there
+            Phase("across", across, OPEN, tol=0.02, speed=across_speed),
             Phase("approach", above, OPEN, tol=0.02),
             Phase("align", near, OPEN, tol=0.015),
             Phase("descend", at, OPEN, tol=0.01, max_steps=60),

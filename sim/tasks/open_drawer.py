@@ -4,6 +4,13 @@ Action multi-modality: each episode has an intended drawer that the
 observation does not reveal. The intended drawer is ``seed % 3``, so
 consecutive seeds split evenly across the drawers. Success means the intended
 drawer is open by at least ``OPEN_DISTANCE`` (and no other drawer is).
+
+The choice is made in the first steps, and an operator's early steer there must still show when the
+policy takes over again: the expert first crosses to the intended drawer's side (``sim.experts.OpenDrawerExpert``),
+the cabinet stands within ``CABINET_Y_SPREAD`` of the same place across the table, and the robot's joints
+start within ``init_joint_noise`` of its home pose. A few centimetres across then tell the drawers apart;
+with the start spread over 6 cm across the cabinet (±4 cm, 0.02 rad), they looked like a start towards
+another drawer (docs/benchmarks/hitl.md, "Open-drawer").
 """
 
 from __future__ import annotations
@@ -19,6 +26,8 @@ OPEN_DISTANCE = 0.10  # metres of slide travel
 WRONG_DRAWER_TOLERANCE = 0.03  # other drawers may move this much
 CABINET = CabinetGeometry()
 CABINET_X = 0.10  # nominal cabinet centre, randomised per episode
+CABINET_X_SPREAD = 0.03  # metres either way, along x (towards the robot)
+CABINET_Y_SPREAD = 0.01  # metres either way, across the table
 DRAWER_NAMES = ("right", "middle", "left")  # drawer 0 is at -y: the robot's right
 
 DRAWER_OBS = ObsSpec(
@@ -40,6 +49,7 @@ class OpenDrawerTask(Task):
     obs_spec = DRAWER_OBS
     action_space = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
     object_name = "cabinet"
+    init_joint_noise = 0.005  # radians: the gripper starts within about 0.5 cm of the same place
 
     def __init__(self, intended: int | None = None) -> None:
         super().__init__()
@@ -56,8 +66,8 @@ class OpenDrawerTask(Task):
         m = self.sim.model
         root = self.body_id(self.cabinet.root_body)
         m.body_pos[root] = [
-            CABINET_X + rng.uniform(-0.03, 0.03),
-            rng.uniform(-0.04, 0.04),
+            CABINET_X + rng.uniform(-CABINET_X_SPREAD, CABINET_X_SPREAD),
+            rng.uniform(-CABINET_Y_SPREAD, CABINET_Y_SPREAD),
             TABLE_TOP_Z + CABINET.wall,
         ]
         for i in range(CABINET.drawers):

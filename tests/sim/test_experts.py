@@ -73,3 +73,22 @@ def test_the_expert_counts_as_placed_only_at_the_grasp_with_the_gripper_open():
     for _ in range(12):  # it closes: no longer placed
         task.step(task.teleop(expert.act(task)).action)
     assert not expert.placed(task)
+
+
+def test_the_drawer_expert_first_crosses_to_the_intended_drawer_at_its_height(task_cache):
+    """The choice of drawer is made in the first steps: the expert moves across the cabinet only (along y), fast,
+    so eight steps take the gripper several centimetres towards the intended side."""
+    task = task_cache("open-drawer")
+    for seed in (0, 2):  # the right drawer (-y), the left one (+y)
+        task.reset(seed)
+        expert = make_expert("open-drawer")
+        expert.reset(task, np.random.default_rng(seed))
+        start = task.ee_pose()[0].copy()
+        handle = task.privileged()["handles"][task.intended]
+        for _ in range(8):
+            assert expert.phase == "across"
+            task.step(task.teleop(expert.act(task)).action)
+        moved = task.ee_pose()[0] - start
+        assert np.sign(moved[1]) == np.sign(handle[1] - start[1])
+        assert abs(moved[1]) > 0.035  # a third of the way to a side drawer's handle (11.4 cm across)
+        assert abs(moved[0]) < 0.01 and abs(moved[2]) < 0.01  # neither forward nor down yet
