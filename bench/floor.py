@@ -147,6 +147,18 @@ def _outcome(result: dict, budget: int) -> dict:
     }
 
 
+def first_requests(result: dict) -> list[dict]:
+    """Per evaluation episode: its seed, whether the oracle's help brought it through, and the step of
+    the oracle's first request (None: it never asked). Up to that step the episode is the policy's
+    own, so a benchmark's autonomous run of the same seed passes the same states: where the episode
+    fails alone and succeeds here, they are the states where help rescues it
+    (``bench.hitl.report.floor_labels``)."""
+    return [
+        {"seed": e["seed"], "success": bool(e["success"]), "first_request": e["asked_at"][0] if e["asked_at"] else None}
+        for e in result["episodes"]
+    ]
+
+
 def _run(cache: Cache, cells: list[Cell], jobs: int, progress: bool, what: str) -> dict[str, dict]:
     return run_chains([[c] for c in cells], cache, jobs, progress, f"floor: {what}", work=run_floor_cell)
 
@@ -182,7 +194,8 @@ def run_floor(recipe: FloorRecipe, cache_dir, jobs: int = 1, progress: bool = Tr
         for config, dev, c in chosen[t]:
             ev = _outcome(final[c.key], recipe.budget)
             ev["ratio"] = ev["assisted_steps"] / full["assisted_steps"] if full["assisted_steps"] else None
-            evaluated.append({"oracle": config.to_dict() | {"label": config.label}, "dev": dev, "eval": ev})
+            entry = {"oracle": config.to_dict() | {"label": config.label}, "dev": dev, "eval": ev}
+            evaluated.append(entry | {"episodes": first_requests(final[c.key])})
         complete = [e for e in evaluated if e["eval"]["success_rate"] == 1.0]
         floor = min(complete, key=lambda e: e["eval"]["assisted_steps"]) if complete else None
         best = floor or max(evaluated, key=lambda e: (e["eval"]["success_rate"], -e["eval"]["assisted_steps"]))

@@ -39,8 +39,8 @@ def quick_policy(root: Path) -> Path:
         "--threads", "1", "--quiet",
     )  # fmt: skip
     _hitl("calibrate", "--policy", str(policy), "--data", str(demos), "--rollouts", "0", "--quiet")
-    _hitl("train-signal", "--policy", str(policy), "--signal", "spread-stall", "--data", str(demos), "--quiet")
-    signal = policy / "signals" / "spread-stall" / "config.json"
+    _hitl("train-signal", "--policy", str(policy), "--signal", "choice-stall", "--data", str(demos), "--quiet")
+    signal = policy / "signals" / "choice-stall" / "config.json"
     doc = json.loads(signal.read_text())
     doc["calibration"]["threshold"] = -1.0  # every score is over it: each robot asks at once
     signal.write_text(json.dumps(doc, indent=2))

@@ -75,12 +75,22 @@ def _cmd_bench_hitl(args: argparse.Namespace) -> int:
     from bench.hitl.run import default_jobs, run_benchmark
 
     recipe = recipe_from_args(args)
+    if args.default_signal is not None and args.default_signal not in {s.label for s in recipe.signals}:
+        raise ValueError(f"--default-signal {args.default_signal!r} is not among --signals")
+    floor = None
+    if args.floor is not None:
+        try:
+            floor = json.loads(args.floor.read_text())
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"--floor {args.floor}: not a readable floor summary ({exc})") from None
+        if not isinstance(floor, dict) or not isinstance(floor.get("tasks"), dict):
+            raise ValueError(f"--floor {args.floor}: not a floor summary (hitl bench floor --json): no tasks")
     raw = run_benchmark(
         recipe, args.cache, jobs=args.jobs or default_jobs(), progress=not args.quiet, cached_only=args.cached_only
     )
     if raw.get("pending_references"):
         raise ValueError(f"--cached-only: the reference rollouts of {raw['pending_references']} have not run yet")
-    summary = summarize(raw)
+    summary = summarize(raw, floor)
     summary["provenance"] = {
         **_provenance(),
         "seeds": [recipe.seed, recipe.seed + recipe.episodes - 1],
@@ -93,6 +103,11 @@ def _cmd_bench_hitl(args: argparse.Namespace) -> int:
         from bench.hitl.docs import write_report
 
         summary["report"] = str(write_report(summary, raw, args.report, args.figures, args.section))
+        if floor is not None and args.default_signal:
+            from bench.hitl.headline import markdown as headline
+            from bench.report_sections import replace_section
+
+            replace_section(args.report, "headline", headline(summary, floor, args.default_signal))
     print(json.dumps(summary, indent=None if args.json else 2))
     return 0
 
@@ -199,6 +214,18 @@ def register(bench: argparse._SubParsersAction) -> None:
     q.add_argument("--exhaustive", action="store_true", help="sweep every threshold (default: stop at 100%% success)")
     q.add_argument("--no-shadow", action="store_true", help="skip the shadow runs (false alarms, diagnostics)")
     q.add_argument("--raw", type=Path, default=None, help="also write every cell's raw result here")
+    q.add_argument(
+        "--floor",
+        type=Path,
+        default=None,
+        help='the floor\'s JSON (hitl bench floor): also score the signals against its "needs help" label',
+    )
+    q.add_argument(
+        "--default-signal",
+        default=None,
+        help="with --report and --floor: the fleet's asking signal, shown at its own calibration in the report's "
+        "headline (the paper's table beside ours, its `headline` section)",
+    )
     q.add_argument("--report", type=Path, default=None, help="write the markdown report here")
     q.add_argument("--figures", type=Path, default=Path("docs/figures"), help="figures folder for --report")
     q.add_argument("--section", default="main", help="the report section this run writes (ablations apart)")
@@ -213,7 +240,7 @@ def register(bench: argparse._SubParsersAction) -> None:
     )
     q.add_argument("--task", default="lift-hammer")
     q.add_argument("--policy", type=Path, default=Path("runs/lift-cube"))
-    q.add_argument("--signal", default="spread-stall", help="default: the fleet's")
+    q.add_argument("--signal", default="choice-stall", help="default: the fleet's")
     q.add_argument("--episodes", type=int, default=8, help="robots, one episode each")
     q.add_argument("--budget", type=int, default=4)
     q.add_argument("--json", action="store_true", help="one line of JSON")

@@ -101,6 +101,27 @@ def _signals_for(policy, policy_dir: Path, names: list[str]) -> dict:
     return out
 
 
+def _variant(policy, policy_dir: Path, text: str):
+    """``NAME`` as saved next to the policy, or ``NAME:key=value`` (one setting: the list is comma-separated)
+    with that setting changed and the saved calibration kept (for what it costs, not what it decides)."""
+    from policy.signals import make_signal
+
+    name, _, setting = text.partition(":")
+    saved = _signals_for(policy, policy_dir, [name])[name]
+    if not setting:
+        return saved
+    key, eq, value = setting.partition("=")
+    if not eq:
+        raise ValueError(f"signal {text!r}: expected NAME:key=value")
+    try:
+        parsed = json.loads(value)
+    except json.JSONDecodeError:
+        parsed = value
+    variant = make_signal(name, policy, {**saved.config.to_dict(), key.strip(): parsed})
+    variant.calibration = saved.calibration
+    return variant
+
+
 def _names(value: str) -> list[str]:
     from policy.signals import SIGNALS
 
@@ -108,7 +129,7 @@ def _names(value: str) -> list[str]:
         return list(SIGNALS)
     names = [n.strip() for n in value.split(",") if n.strip()]
     for n in names:
-        if n not in SIGNALS:
+        if n.partition(":")[0] not in SIGNALS:
             raise KeyError(f"unknown signal {n!r}; registered signals: {', '.join(SIGNALS)}")
     return names
 
@@ -196,8 +217,8 @@ def _cmd_bench_signals(args: argparse.Namespace) -> int:
             else (policy, args.policy)
         )
         try:
-            signals.update(_signals_for(owner, folder, [name]))
-        except SignalError as exc:
+            signals[name] = _variant(owner, folder, name)
+        except (SignalError, ValueError) as exc:
             skipped[name] = str(exc)
     result = bench_signals(signals, steps, args.robots, args.repeats, not args.quiet)
     if "stac" in result["signals"] and args.stac_policy:
@@ -264,7 +285,11 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument(
         "--stac-policy", type=Path, default=None, help="a chunked policy for stac (needs action_horizon > 1)"
     )
-    q.add_argument("--signals", default="all")
+    q.add_argument(
+        "--signals",
+        default="all",
+        help="comma-separated names, each as saved next to the policy, or NAME:key=value for one setting changed",
+    )
     q.add_argument("--task", default=None)
     q.add_argument("--episodes", type=int, default=4)
     q.add_argument("--seed", type=int, default=1000)

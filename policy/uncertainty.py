@@ -192,12 +192,20 @@ class UncertaintyEstimator:
     def reset(self) -> None:
         self._generator.manual_seed(self.config.seed)
 
-    def probe(self, center: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def probe(
+        self, center: torch.Tensor, chunk: int, plan: torch.Tensor | None = None, step: int = 0
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """center: (B, D) normalized current action -> (positions (B, S, 3), actions (B, S, C, D)), on
-        ``center``'s device (the offsets are drawn on the CPU generator: the same probe on every device)."""
+        ``center``'s device (the offsets are drawn on the CPU generator: the same probe on every device).
+        With ``plan`` (B, C, D), a normalized chunk: the probe is the chunk moved by each offset (every
+        step by the same), and the positions are those of its step ``step``."""
         cfg = self.config
         b, d = center.shape
         offsets = sample_ball(b, cfg.num_samples, cfg.radius, self._generator).to(center.device)
+        if plan is not None:
+            actions = plan[:, None].repeat(1, cfg.num_samples, 1, 1)
+            actions[..., POS] += offsets[:, :, None, :]
+            return actions[:, :, step, POS], actions
         actions = center[:, None, :].repeat(1, cfg.num_samples, 1)
         actions[..., POS] += offsets
         return actions[..., POS], actions[:, :, None, :].expand(b, cfg.num_samples, chunk, d)
@@ -210,6 +218,7 @@ class UncertaintyEstimator:
         center: torch.Tensor,
         chunk: int = 1,
         alphas_cumprod: torch.Tensor | None = None,
+        plan: torch.Tensor | None = None,
     ) -> UncertaintyBatch:
         """obs: whatever ``eps_fn`` takes, batched over B robots; center: (B, D) current end-effector
         action (pose + gripper) in the normalized action space; chunk: the predictor's chunk length;
@@ -217,7 +226,10 @@ class UncertaintyEstimator:
         scaled by sqrt(ᾱ_k), as the forward process scales clean actions; the field is read there).
 
         The probe, the field and the mixture fits run on ``center``'s device (an accelerator's when the
-        caller puts it there); the score is computed, and the batch returned, on the CPU."""
+        caller puts it there); the score is computed, and the batch returned, on the CPU.
+
+        plan: (B, C, D) a normalized chunk to probe around instead (``probe``): the chunk is moved by
+        each offset and the field is read at its step ``chunk_step``, the pose it will reach there."""
         cfg = self.config
         center = torch.as_tensor(center).float()
         if center.dim() != 2 or center.shape[1] < 3:
@@ -226,7 +238,11 @@ class UncertaintyEstimator:
             raise ValueError("center has NaN or inf entries")
         if not cfg.chunk_step < chunk:
             raise ValueError(f"chunk_step {cfg.chunk_step} is outside the chunk of length {chunk}")
-        samples, actions = self.probe(center, chunk)
+        if plan is not None and tuple(plan.shape) != (center.shape[0], chunk, center.shape[1]):
+            raise ValueError(
+                f"plan must have shape {(center.shape[0], chunk, center.shape[1])}, got {tuple(plan.shape)}"
+            )
+        samples, actions = self.probe(center, chunk, plan, cfg.chunk_step)
         if cfg.noise_step > 0:
             if alphas_cumprod is None or cfg.noise_step >= len(alphas_cumprod):
                 raise ValueError(f"noise_step {cfg.noise_step} needs the schedule's alphas_cumprod covering it")

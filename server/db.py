@@ -157,7 +157,12 @@ SEGMENT_ENDS = (
 
 
 class SegmentRecord(Base):
-    """One takeover: status open -> closed, or recovered after a crash; ended_by: one of SEGMENT_ENDS."""
+    """One takeover: status open -> closed, or recovered after a crash; ended_by: one of SEGMENT_ENDS.
+
+    The request it answers (``server.fleet.assistance.AskRecord``): reason, and from migration 0007
+    signal (the asking signal's name, "watchdog", or None for help requested through the service),
+    score and threshold (the numbers the queue ranked it by) and paper_u (the paper's denoising U when
+    the robot asked). Rows recorded before 0007 have None in these four: not recorded, not an error."""
 
     __tablename__ = "segments"
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
@@ -167,6 +172,10 @@ class SegmentRecord(Base):
     policy_id: Mapped[int | None] = mapped_column(ForeignKey("policy_versions.id"), nullable=True)
     operator: Mapped[str] = mapped_column(String(128))
     reason: Mapped[str] = mapped_column(String(256))
+    signal: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    score: Mapped[float | None] = mapped_column(Float, nullable=True)
+    threshold: Mapped[float | None] = mapped_column(Float, nullable=True)
+    paper_u: Mapped[float | None] = mapped_column(Float, nullable=True)
     status: Mapped[str] = mapped_column(String(16), index=True, default="open")
     ended_by: Mapped[str | None] = mapped_column(String(32), nullable=True)
     steps: Mapped[int] = mapped_column(Integer, default=0)

@@ -4,8 +4,10 @@
 ``since`` .. ``until``) and id (episodes, takeover segments). A selected episode whose whole file was
 recorded (``record_episodes``) becomes one attempt with its takeovers inside it, frame by frame; a
 selected takeover whose episode was not recorded, or every takeover with ``takeovers_only``, becomes an
-attempt of its own. Each takeover carries its operator label. What cannot be exported (no file, an
-unreadable one, an episode still running) is named in ``Collected.skipped`` with the reason.
+attempt of its own. Each takeover carries its operator label and the request it answered
+(``server.labels.label_of``: null numbers for a takeover recorded before they were stored). What
+cannot be exported (no file, an unreadable one, an episode still running) is named in
+``Collected.skipped`` with the reason.
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ from sqlalchemy.orm import sessionmaker
 
 from server.db import NOTE_MAX, SEGMENT_LABELS, SegmentRecord
 from server.errors import ServiceError
-from storage.lerobot.attempts import TakeoverLabel
+from storage.lerobot.attempts import TakeoverLabel, TakeoverRequest
 
 DISCARDED_WHY = "discarded by {who} at {when}"
 
@@ -67,7 +67,10 @@ def set_label(sessions: sessionmaker, segment_id: int, who: str, change: LabelCh
 
 
 def label_of(row: SegmentRecord) -> TakeoverLabel:
-    return TakeoverLabel(row.label, bool(row.discarded), row.note, row.labelled_by, row.labelled_at)
+    """The takeover's label and the request it answered (None where a row recorded before migration 0007
+    has none)."""
+    request = TakeoverRequest(row.signal, row.score, row.threshold, row.reason, row.paper_u)
+    return TakeoverLabel(row.label, bool(row.discarded), row.note, row.labelled_by, row.labelled_at, request)
 
 
 def why_discarded(row: SegmentRecord) -> str | None:

@@ -170,7 +170,7 @@ class Settings(BaseSettings):
     control_hz: float = Field(10.0, ge=0, le=200, description="0: free-running (benchmarks)")
     robots: list[RobotGroup] = Field(default_factory=lambda: [RobotGroup(task="lift-cube", count=1)])
     signal: str = Field(
-        "spread-stall",
+        "choice-stall",
         description="the assistance signal that asks for help (docs/signals.md; 'denoising': the paper's)",
     )
     assistance: bool = Field(

@@ -64,6 +64,7 @@ SCHEMAS: dict[str, dict] = {
             keys.STEP_SOURCE: {"type": "string", "enum": list(keys.SOURCES)},
             keys.STEP_SCORE: {"type": "number"},
             keys.STEP_THRESHOLD: {"type": "number"},
+            keys.STEP_PAPER_U: {"type": "number", "description": "the paper's denoising U"},
             keys.STEP_POLICY_VERSION: {"type": "integer"},
             keys.STEP_COMMAND: {
                 "type": "object",
@@ -200,8 +201,8 @@ class EpisodeWriter:
         extras: dict | None = None,
     ) -> None:
         """One control step: the observation before the action, and the action taken. ``extras``: the
-        optional ``keys.STEP_EXTRAS`` the fleet knows (asking score and threshold, policy version,
-        operator command, takeover id); other keys are refused."""
+        optional ``keys.STEP_EXTRAS`` the fleet knows (asking score and threshold, the paper's U, policy
+        version, operator command, takeover id); other keys are refused."""
         extras = {k: v for k, v in (extras or {}).items() if v is not None}
         if unknown := set(extras) - set(keys.STEP_EXTRAS):
             raise ValueError(f"unknown step fields {sorted(unknown)}; known: {keys.STEP_EXTRAS}")

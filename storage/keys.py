@@ -21,10 +21,11 @@ STEP_SOURCE = "source"  # who produced the action: see SOURCES
 # optional, in episodes the fleet records (absent in scripted demonstrations):
 STEP_SCORE = "score"  # the asking signal's score at this step (absent when the robot was not scored)
 STEP_THRESHOLD = "threshold"  # the asking signal's threshold then
+STEP_PAPER_U = "paper_u"  # the paper's denoising U at this step (absent when it was not computed)
 STEP_POLICY_VERSION = "policy_version"  # the registry id of the version that drove the robot
 STEP_COMMAND = "command"  # the operator's command, on an operator step: delta_pos, delta_rot, gripper
 STEP_TAKEOVER = "takeover"  # the takeover segment's id, on an operator step
-STEP_EXTRAS = (STEP_SCORE, STEP_THRESHOLD, STEP_POLICY_VERSION, STEP_COMMAND, STEP_TAKEOVER)
+STEP_EXTRAS = (STEP_SCORE, STEP_THRESHOLD, STEP_PAPER_U, STEP_POLICY_VERSION, STEP_COMMAND, STEP_TAKEOVER)
 
 SOURCE_EXPERT = "expert"  # scripted demonstrator
 SOURCE_POLICY = "policy"  # autonomous diffusion policy
@@ -58,7 +59,7 @@ EPISODE_GLOB = "*.mcap"
 CACHE_DIR = ".cache"
 
 # -- takeover segments (one MCAP file per operator takeover) --------------------------------------
-TOPIC_TAKEOVER = "/takeover"  # once, first: robot, episode, policy version, operator, task, reason
+TOPIC_TAKEOVER = "/takeover"  # once, first: robot, episode, policy version, operator, task, reason, request
 TOPIC_TAKEOVER_STEP = "/takeover/step"  # per step: obs, command, fine-tune label, U, shadow scores, pose
 TOPIC_TAKEOVER_END = "/takeover/end"  # once, last: status, steps
 TOPIC_FIELD = "/denoising/field"  # foxglove.SceneUpdate: the vector field as arrows coloured by mode

@@ -1,13 +1,16 @@
 """Takeover segments: one MCAP file per operator takeover, the fine-tuning data of the product.
 
 Once, first (``/takeover``, and the file's ``takeover`` metadata): what the writer is given, in the
-service the robot, episode, serving policy version, operator, task, reason and asking signal, and
-``keys.OBS_LABELS``, the observation's channel names in order (segments written before it was recorded
-lack it; fine-tuning then judges their observations by size alone, ``storage.takeovers``).
+service the robot, episode, serving policy version, operator, task, reason, the asking signal and its
+threshold (``signal``, ``threshold``: whose score the steps record), ``request`` (the request the
+takeover answers: signal, score, threshold, reason, asked_at_step, paper_u; ``Segment.request``) and
+``keys.OBS_LABELS``, the observation's channel names in order (segments written before these were
+recorded lack them; fine-tuning then judges their observations by size alone, ``storage.takeovers``).
 Per step (``/takeover/step``, with the step field names of ``storage.keys`` that episodes use
 too): the observation, the operator's command, the resulting absolute
-action and the same action in the policy's normalized action space (the fine-tune label), U and
-any shadow signal scores, and the end-effector pose. ``/tf`` carries the end effector and
+action and the same action in the policy's normalized action space (the fine-tune label), the paper's
+U (``uncertainty``) and every other signal's score (``shadow``, the asking signal's included), and the
+end-effector pose. ``/tf`` carries the end effector and
 ``/denoising/field`` the denoising vector field as a ``foxglove.SceneUpdate`` of arrows coloured
 by mode. The writer flushes at least every ``flush_seconds`` (the service: after every step, so a
 crash of the server loses no step it applied; docs/service.md, "Durability");
@@ -250,6 +253,13 @@ class Segment:
     recovered: bool = False
     fields: list[dict] = field(default_factory=list)
     step_messages: list[dict] = field(default_factory=list, repr=False)  # the /takeover/step payloads
+
+    @property
+    def request(self) -> dict | None:
+        """The request the takeover answers (signal, score, threshold, reason, asked_at_step, paper_u);
+        None for a segment written before it was recorded."""
+        req = self.meta.get("request")
+        return req if isinstance(req, dict) else None
 
     @cached_property
     def steps(self) -> tuple[SegmentStep, ...]:

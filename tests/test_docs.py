@@ -327,3 +327,17 @@ def test_hitl_sections_are_what_the_code_writes():
         body = _section(page, section or "main")
         figures = [page.parent / f for f in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", body)]
         assert body == markdown(summary, figures, page, paper=name == "main", section=name)
+
+
+def test_the_hitl_headline_is_what_the_code_writes_from_the_main_run_and_the_floor():
+    import json
+
+    from bench.hitl.headline import markdown as headline
+
+    summary = json.loads((RESULTS / "hitl" / "main.json").read_text())
+    words = shlex.split(summary["provenance"]["command"])
+    assert "--floor" in words and "--default-signal" in words, "the main run writes the headline"
+    floor = json.loads((ROOT / words[words.index("--floor") + 1]).read_text())
+    report = ROOT / words[words.index("--report") + 1]
+    body = _section(report, "headline")
+    assert body == headline(summary, floor, words[words.index("--default-signal") + 1])

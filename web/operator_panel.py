@@ -107,7 +107,7 @@ class OperatorPanel:
             self.plot = gui.add_uplot(
                 data=tuple(np.zeros(0) for _ in TIMELINE_SERIES),
                 series=TIMELINE_SERIES,
-                title="U timeline",
+                title="Timeline: asking score and the paper's U (÷ threshold)",
                 aspect=2.0,
                 scales={"x": {"time": False}},
             )

@@ -1,7 +1,9 @@
 """The console's side panel, as text and plot data built from one tick's ``FleetSnapshot``.
 
 Pure functions (no viser): the fleet overview, the queue rows, a robot's numbers and goal, and its
-U timeline for uPlot. ``web.console`` puts them on screen and sends only what changed.
+timeline for uPlot. ``web.console`` puts them on screen and sends only what changed. The asking
+signal's numbers are those the API shows (``server.api.robots.asking``): a robot with an open request
+shows the request's, the queue's own; the paper's denoising U is shown beside them, labelled as such.
 """
 
 from __future__ import annotations
@@ -69,6 +71,16 @@ def asking_threshold(view: RobotView) -> tuple[str, float | None]:
         return name, None
 
 
+def asking_numbers(view: RobotView) -> tuple[str, float | None, float | None]:
+    """The signal, score and threshold shown for the robot: its open request's (``RobotView.ask``: the
+    queue's numbers, "watchdog" or "requested" for help asked without a signal) while it has one, else
+    the asking signal's latest score and its threshold."""
+    if (ask := view.ask) is not None:
+        return ask.signal or "requested", ask.score, ask.threshold
+    name, threshold = asking_threshold(view)
+    return name, view.scores.get(name), threshold
+
+
 def _num(x: float | None, digits: int = 3) -> str:
     """Compact: 3 significant digits, whole numbers from 1000 on (no exponent in a narrow table)."""
     if x is None or not math.isfinite(x):
@@ -77,14 +89,14 @@ def _num(x: float | None, digits: int = 3) -> str:
 
 
 def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
-    """Every robot: task, mode, the asking signal's score against its threshold, U, outcomes, policy."""
+    """Every robot: task, mode, the asking signal's score against its threshold (the request's while it
+    has one), the paper's U against its threshold, outcomes, policy."""
     lines = [
-        "| Robot | Task | Mode | Score / threshold | U / threshold | Successes | Assists | Policy |",
+        "| Robot | Task | Mode | Asking: score / threshold | Paper's U / threshold | Successes | Assists | Policy |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for rid, v in sorted(snapshot.robots.items()):
-        name, threshold = asking_threshold(v)
-        score = v.scores.get(name)
+        name, score, threshold = asking_numbers(v)
         flag = " ⚠" if score is not None and threshold is not None and score > threshold else ""
         u = v.u_history[-1] if v.u_history else None
         req = snapshot.request(rid)
@@ -92,7 +104,7 @@ def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
         if req is not None and req.holder:
             mode += f" ({'you' if req.holder == me else plain(req.holder)})"
         lines.append(
-            f"| {rid} | {v.task} | {mode} | {_num(score)} / {_num(threshold)}{flag} "
+            f"| {rid} | {v.task} | {mode} | {name}: {_num(score)} / {_num(threshold)}{flag} "
             f"| {_num(u)} / {_num(v.slot.threshold)} "
             f"| {v.successes} / {v.episodes_done} | {v.events} ({v.assisted_steps} steps) | v{v.slot.version} |"
         )
@@ -166,11 +178,12 @@ def queue_row(req: AssistanceRequest, view: RobotView | None, now: float, me: st
 
 
 def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, me: str, task: Task) -> str:
-    """Mode and lease, which signal asked and why, n, D, Var_g and U against the threshold, the goal
-    (``task.goal`` of the frame's scene: the task the robot runs, as ``make_task`` builds it)."""
+    """Mode and lease, which signal asked and why (its score against its threshold: the request's while
+    the robot has one), the paper's n, D, Var_g and U against its threshold, the goal (``task.goal`` of
+    the frame's scene: the task the robot runs, as ``make_task`` builds it)."""
     frame = view.frame
-    name, threshold = asking_threshold(view)
-    score = view.scores.get(name)
+    name, score, threshold = asking_numbers(view)
+    asked = f"asked at step {view.ask.asked_at_step}" if view.ask is not None else "asks"
     head = f"### Robot {view.id} · {view.task} · {MODE_BADGES.get(view.mode, view.mode)}"
     lines = [head]
     if req is not None:
@@ -185,11 +198,11 @@ def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, m
         lines.append(f"**Fault:** {view.fault}")
     r = view.last_result
     rows = ["| | value | threshold |", "|---|---|---|"]
-    rows.append(f"| **{name}** (asks) | {_num(score)} | {_num(threshold)} |")
+    rows.append(f"| **{name}** ({asked}) | {_num(score)} | {_num(threshold)} |")
     if r is not None:
         over = " ⚠" if view.slot.threshold and view.slot.threshold < r.U else ""
         rows += [
-            f"| U = D + α·Var_g | {_num(r.U)}{over} | {_num(view.slot.threshold)} |",
+            f"| paper's U = D + α·Var_g | {_num(r.U)}{over} | {_num(view.slot.threshold)} |",
             f"| D (mode divergence) | {_num(r.D)} | |",
             f"| Var_g | {_num(r.var_g)} | |",
             f"| n (modes) | {r.n} | |",
@@ -212,8 +225,8 @@ def key_map_markdown() -> str:
 
 
 def timeline_data(view: RobotView) -> tuple[np.ndarray, ...]:
-    """uPlot data: step, the asking signal's score / its threshold, U / its threshold, the threshold
-    (1), help requested (a marker at 1), control changed hands (a marker at 1). NaN is a gap."""
+    """uPlot data: step, the asking signal's score / its threshold, the paper's U / its threshold, the
+    threshold (1), help requested (a marker at 1), control changed hands (a marker at 1). NaN is a gap."""
     points = view.timeline
     _, threshold = asking_threshold(view)
     t = np.array([p.t for p in points], dtype=np.float64)
@@ -227,8 +240,8 @@ def timeline_data(view: RobotView) -> tuple[np.ndarray, ...]:
 
 TIMELINE_SERIES = (
     {"label": "episode step"},
-    {"label": "score ÷ threshold", "stroke": "#0072B2", "width": 2},
-    {"label": "U ÷ threshold", "stroke": "#888888", "width": 1},
+    {"label": "asking score ÷ threshold", "stroke": "#0072B2", "width": 2},
+    {"label": "paper's U ÷ threshold", "stroke": "#888888", "width": 1},
     {"label": "threshold", "stroke": "#D55E00", "width": 1, "dash": [6, 4]},
     {"label": "asked", "stroke": "#D55E00", "width": 0, "points": {"show": True, "size": 9, "fill": "#D55E00"}},
     {

@@ -253,13 +253,14 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
         lines += [
             f"### False alarms on {fa['task']} ({fa['episodes']} episodes that succeed on their own), {label}",
             "",
-            "| signal | own calibration | " + " | ".join(labels) + " |",
-            "|---|---|" + "---|" * len(labels),
+            "| signal | own calibration: steps | own calibration: episodes that ask | " + " | ".join(labels) + " |",
+            "|---|---|---|" + "---|" * len(labels),
         ]
         for s, r in sorted(fa["signals"].items()):
             own = "—" if r["default"] is None else f"{100 * r['default']:.1f}%"
+            eps = "—" if r.get("episodes_asking") is None else f"{100 * r['episodes_asking']:.0f}%"
             by = [f"{100 * r['by_threshold'][lab]:.1f}%" if lab in r["by_threshold"] else "" for lab in labels]
-            lines.append(f"| {s} | {own} | " + " | ".join(by) + " |")
+            lines.append(f"| {s} | {own} | {eps} | " + " | ".join(by) + " |")
         lines.append("")
     diag = summary.get("diagnostics") or {}
     if diag.get("tasks"):
@@ -276,6 +277,23 @@ def markdown(summary: dict, figures: list[Path], report: Path, paper: bool = Tru
             lines.append(f"| {s} | " + " | ".join("—" if v is None else f"{v:.2f}" for v in vals) + " |")
         counts = ", ".join(f"{t} {diag['tasks'][t]['positives']}/{diag['tasks'][t]['negatives']}" for t in dt)
         lines += ["", f"States (positive/negative): {counts}.", ""]
+        if any("auroc_floor" in diag["tasks"][t] for t in dt):
+            lines += [
+                f'### Per-state AUROC for "needs help" by the floor (the {summary["recipe"]["budget"]} states '
+                "from the oracle's first request on, in episodes the policy fails alone and the oracle brings "
+                f"through; negatives as above), {label}",
+                "",
+                *_header(dt),
+            ]
+            for s in names:
+                vals = [(diag["tasks"][t].get("auroc_floor") or {}).get(s) for t in dt]
+                lines.append(f"| {s} | " + " | ".join("—" if v is None else f"{v:.2f}" for v in vals) + " |")
+            counts = ", ".join(
+                f"{t} {diag['tasks'][t].get('floor_positives', 0)} in {diag['tasks'][t].get('floor_episodes', 0)} "
+                "episodes"
+                for t in dt
+            )
+            lines += ["", f"Positive states: {counts}.", ""]
         lines += [
             "### Where each score peaks (median step of its maximum over the autonomous episodes, and that "
             f"step as a share of the episode), {label}",

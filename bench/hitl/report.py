@@ -1,9 +1,15 @@
 """Summaries of ``hitl bench hitl`` runs: sweep curves, the fewest assisted steps that reach a success
 rate, false alarms, per-state diagnostics; the markdown of ``docs/benchmarks/hitl.md`` and its figures.
 
-Per-state ground truth ("this state needs help"): a step within ``NEEDS_HELP_WINDOW`` steps before
-the end of an episode the policy failed on its own is positive; every step of an episode the same
-policy completed on its own (on any task it was run on) is negative. AUROC per signal and task.
+Per-state ground truth ("this state needs help"), two labels, AUROC per signal and task; negatives
+are every step of an episode the same policy completed on its own (on any task it was run on):
+
+- *late* (``NEEDS_HELP_WINDOW``): the last steps before the end of an episode the policy failed on its
+  own. It rewards detecting a failure once it happens, when help often no longer rescues anything.
+- *floor* (given the floor's summary, ``hitl bench floor``): in an episode the policy fails on its own
+  and the floor's oracle brings through on the same seed, the ``budget`` states from the oracle's first
+  request on, which the autonomous run passes too (up to that request the two episodes are the same):
+  the states where help rescues the episode.
 """
 
 from __future__ import annotations
@@ -51,7 +57,8 @@ def fewest_steps(curve: list[dict], target: float) -> dict | None:
     return min(ok, key=lambda p: p["assisted_steps"]) if ok else None
 
 
-def summarize(raw: dict) -> dict:
+def summarize(raw: dict, floor: dict | None = None) -> dict:
+    """The run's summary; ``floor``: the floor's summary (``hitl bench floor``) for the *floor* label."""
     recipe = raw["recipe"]
     tasks: dict[str, dict] = {t: {"signals": {}} for t in recipe["tasks"]}
     for entry in raw["assisted"]:
@@ -84,14 +91,16 @@ def summarize(raw: dict) -> dict:
         "pending_cells": raw.get("pending_cells", 0),
         "tasks": tasks,
         "false_alarms": false_alarms(raw),
-        "diagnostics": diagnostics(raw),
+        "diagnostics": diagnostics(raw, floor=floor),
         "skipped": {p: r["skipped"] for p, r in raw["reference"].items() if r.get("skipped")},
     }
 
 
 def false_alarms(raw: dict) -> dict:
     """Per signal, on ``false_alarm_task`` episodes that succeed on their own: the share of steps its
-    own calibrated rule asks for help, and the share above each swept threshold."""
+    own calibrated rule asks for help, the share of episodes in which it asks at all (the rule run over
+    the episode in shadow: no takeover follows, so a robot that asked is scored on as if it had not),
+    and the share of steps above each swept threshold."""
     task = raw["recipe"].get("false_alarm_task")
     shadow = raw["shadow"].get(task) if task else None
     if not shadow:
@@ -109,7 +118,12 @@ def false_alarms(raw: dict) -> dict:
     for s in labels:
         scores = np.asarray([v for e in ok for v in e["scores"][s]], dtype=np.float64)
         wants = [v for e in ok for v in e.get("wants", {}).get(s, [])]
-        row = {"default": float(np.mean(wants)) if wants else None, "by_threshold": {}}
+        asked = [any(e["wants"][s]) for e in ok if e.get("wants", {}).get(s)]
+        row = {
+            "default": float(np.mean(wants)) if wants else None,
+            "episodes_asking": float(np.mean(asked)) if asked else None,  # episodes its rule asks in at all
+            "by_threshold": {},
+        }
         for label, thr in sorted(thresholds.get(s, {}).items()):
             if s != RANDOM:
                 row["by_threshold"][label] = float(np.mean(scores > thr)) if len(scores) else None
@@ -131,9 +145,30 @@ def _needs_help(episodes: list[dict], window: int) -> tuple[dict[str, list], dic
     return pos, neg
 
 
-def diagnostics(raw: dict, window: int = NEEDS_HELP_WINDOW) -> dict:
+def floor_labels(floor: dict, task: str, shadow: list[dict], budget: int) -> dict[int, list[int]]:
+    """The *floor* label's positive steps, per shadow episode index: where the episode fails alone and
+    the floor's chosen oracle (its floor, else its best finalist) brought the same seed through, the
+    ``budget`` steps from the oracle's first request on. Empty where the floor has no episodes for the
+    task (a summary written before they were recorded)."""
+    row = (floor.get("tasks") or {}).get(task)
+    chosen = row and (row.get("floor") or row.get("best"))
+    if not chosen or "episodes" not in chosen:
+        return {}
+    rescued = {
+        e["seed"]: e["first_request"] for e in chosen["episodes"] if e["success"] and e["first_request"] is not None
+    }
+    out = {}
+    for i, e in enumerate(shadow):
+        k = rescued.get(e.get("seed"))
+        if not e["success"] and k is not None and k < e["steps"]:
+            out[i] = list(range(k, min(k + budget, e["steps"])))
+    return out
+
+
+def diagnostics(raw: dict, window: int = NEEDS_HELP_WINDOW, floor: dict | None = None) -> dict:
     """AUROC of every signal for "this state needs help", per task (negatives: every successful
-    autonomous episode of the same policy, on any task it ran)."""
+    autonomous episode of the same policy, on any task it ran), by the *late* label and, given the
+    floor's summary, by the *floor* label (see the module)."""
     policies = raw["recipe"]["policies"]
     negatives: dict[str, dict[str, list]] = {}
     for t, shadow in raw["shadow"].items():
@@ -150,6 +185,19 @@ def diagnostics(raw: dict, window: int = NEEDS_HELP_WINDOW) -> dict:
             for s in sorted(set(pos) | set(neg))
             if s not in (FULL_TELEOP,)
         }
+        if floor is not None:
+            labels = floor_labels(floor, t, shadow["episodes"], raw["recipe"]["budget"])
+            fpos: dict[str, list] = {}
+            for i, steps in labels.items():
+                for s, vals in shadow["episodes"][i]["scores"].items():
+                    fpos.setdefault(s, []).extend(v for k in steps if k < len(vals) and math.isfinite(v := vals[k]))
+            row["floor_positives"] = len(next(iter(fpos.values()), []))
+            row["floor_episodes"] = len(labels)
+            row["auroc_floor"] = {
+                s: auroc(np.asarray(neg[s]), np.asarray(fpos[s])) if fpos.get(s) and neg.get(s) else None
+                for s in sorted(set(pos) | set(neg))
+                if s not in (FULL_TELEOP,)
+            }
         row["peak_step"] = peak_steps(shadow["episodes"])
         out["tasks"][t] = row
     return out

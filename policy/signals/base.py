@@ -12,6 +12,7 @@ work in the policy's normalized action space normalize inside.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
@@ -157,6 +158,21 @@ def quantile_record(values: np.ndarray, quantile: float, source: str) -> dict:
         "source": source,
         "stats": {"mean": float(values.mean()), "median": float(np.median(values)), "max": float(values.max())},
     }
+
+
+def raised_half(calibration: dict | None, half: str, factor: float, evidence: dict, who: str) -> dict:
+    """A two-half signal's calibration (``spread-stall``, ``choice-stall``) with ``half``'s threshold times
+    ``factor`` (>= 1: a threshold fitted on the policy's own episodes is only ever raised), the
+    demonstrations' threshold and the ``evidence`` kept beside it; the other half's is left as it is."""
+    if not (isinstance(factor, int | float) and math.isfinite(factor) and factor >= 1):
+        raise SignalError(f"{who}: a threshold fitted on episodes can only be raised, got factor {factor!r}")
+    if calibration is None:
+        raise SignalError(f"{who}: calibrate before fitting a threshold on episodes")
+    record = dict(calibration[half])
+    record["demonstrations_threshold"] = record.get("demonstrations_threshold", record["threshold"])
+    record["threshold"] = float(record["threshold"]) * float(factor)
+    record["own_episodes"] = dict(evidence) | {"factor": float(factor)}
+    return dict(calibration) | {half: record}
 
 
 def check_quantile(name: str, q: float) -> None:

@@ -15,6 +15,8 @@ from safetensors.torch import load_file, save_file
 from policy.checkpoint import CALIBRATION, load_calibration
 from policy.diffusion_policy import DiffusionPolicy
 from policy.signals.base import AssistanceSignal, SignalConfig, SignalError
+from policy.signals.choice import ChoiceSignal
+from policy.signals.choice_stall import ChoiceStallSignal
 from policy.signals.critics import HulaSignal, ThriftySignal
 from policy.signals.reference import FullTeleopSignal, RandomSignal
 from policy.signals.sampling import DenoisingSignal, DiffDaggerSignal, OutputVarianceSignal, StacSignal
@@ -32,6 +34,8 @@ SIGNALS: dict[str, type[AssistanceSignal]] = {
     "spread": SpreadSignal,
     "stall": StallSignal,
     "spread-stall": SpreadStallSignal,
+    "choice": ChoiceSignal,
+    "choice-stall": ChoiceStallSignal,
     "full-teleop": FullTeleopSignal,
     "random": RandomSignal,
 }

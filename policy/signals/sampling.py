@@ -7,7 +7,7 @@ Each scores the whole batch of robots in as few network calls as its method allo
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 import torch
@@ -32,7 +32,10 @@ from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
 from sim.spaces import POS
 
 NO_GRIPPER = slice(0, 9)  # every action dimension but the gripper
-CENTERS = ("current", "action")
+# the probe's centre: the "current" pose (the paper), the policy's next "action", or its "chunk" moved by
+# the probe and read at its last executed step, the pose it will reach (the paper's metric on a chunked
+# policy; on a chunk of one, the next action)
+CENTERS = ("current", "action", "chunk")
 
 
 def batched_scores(
@@ -96,12 +99,19 @@ class DenoisingSignal(AssistanceSignal):
 
     def __init__(self, policy, config=None) -> None:
         super().__init__(policy, config)
-        self.estimator = UncertaintyEstimator(self.config.uncertainty())
+        metric = self.config.uncertainty()
+        if self.config.center == "chunk":  # read where the chunk will be when the next one is sampled
+            last = min(int(policy.config.n_action_steps), int(policy.config.action_horizon)) - 1
+            metric = replace(metric, chunk_step=last)
+        self.estimator = UncertaintyEstimator(metric)
 
     def score(self, batch: SignalInput) -> Scores:
-        if self.config.center == "action":  # the action the robot takes next (sampled when not given)
+        plan = None
+        if self.config.center in ("action", "chunk"):  # the robot's chunk (sampled when not given)
             action = batch.action if batch.action is not None else self.sample_chunks(batch.obs, 1)[:, 0]
             center = self.policy.normalize_action(action[:, 0])
+            if self.config.center == "chunk":  # the chunk moved by the probe, read where it will reach
+                plan = self.policy.normalize_action(action).to(self.policy.device)
         else:
             center = self.policy.normalize_action(batch.current)
         result = self.estimator(  # the probe and the fits run where the policy's weights are
@@ -110,6 +120,7 @@ class DenoisingSignal(AssistanceSignal):
             center.to(self.policy.device),
             chunk=self.policy.config.action_horizon,
             alphas_cumprod=self.policy.schedule.alphas_cumprod,
+            plan=plan,
         )
         return Scores(
             result.U.numpy(),

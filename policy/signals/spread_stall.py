@@ -62,6 +62,7 @@ from policy.signals.base import (
     TriggerState,
     check_positive_int,
     check_quantile,
+    raised_half,
 )
 from policy.signals.spread import SpreadConfig, SpreadSignal
 from policy.signals.stall import StallConfig, StallSignal
@@ -223,16 +224,7 @@ class SpreadStallSignal(AssistanceSignal):
     def scale_threshold(self, scene: str, factor: float, evidence: dict) -> None:
         """The asking half's threshold for ``scene`` (``spread`` on a familiar scene, ``stall`` on a new
         one) times ``factor``; the other half's is left as it is."""
-        half = _half(scene)
-        if not (isinstance(factor, int | float) and math.isfinite(factor) and factor >= 1):
-            raise SignalError(f"spread-stall: a threshold fitted on episodes can only be raised, got factor {factor!r}")
-        if self.calibration is None:
-            raise SignalError("spread-stall: calibrate before fitting a threshold on episodes")
-        record = dict(self.calibration[half])
-        record["demonstrations_threshold"] = record.get("demonstrations_threshold", record["threshold"])
-        record["threshold"] = float(record["threshold"]) * float(factor)
-        record["own_episodes"] = dict(evidence) | {"factor": float(factor)}
-        self.calibration = dict(self.calibration) | {half: record}
+        self.calibration = raised_half(self.calibration, _half(scene), factor, evidence, "spread-stall")
         self.reset()
 
     def _calibrate(self, data: CalibrationData, progress: bool) -> dict:

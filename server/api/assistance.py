@@ -22,6 +22,8 @@ def request_out(req: AssistanceRequest) -> AssistanceRequestOut:
     return AssistanceRequestOut(
         id=req.id,
         robot_id=req.robot_id,
+        signal=req.signal,
+        score=req.uncertainty,
         uncertainty=req.uncertainty,
         threshold=req.threshold,
         reason=req.reason,

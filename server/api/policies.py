@@ -22,10 +22,17 @@ router = APIRouter(tags=["policies"])
 
 
 def _out(fleet, rows) -> list[PolicyOut]:
+    """The rows, each with the robots running it and, for those it runs, its asking signal and threshold
+    (the row's ``threshold`` is the paper's denoising one)."""
     running: dict[int, list[int]] = {}
+    asking: dict[int, dict] = {}
     for r in fleet.views():
         running.setdefault(r.slot.version, []).append(r.id)
-    return [PolicyOut.model_validate(row).model_copy(update={"robots": running.get(row.id, [])}) for row in rows]
+        asking[r.slot.version] = {"asking_signal": r.slot.asking or None, "asking_threshold": r.slot.asking_threshold}
+    return [
+        PolicyOut.model_validate(row).model_copy(update={"robots": running.get(row.id, [])} | asking.get(row.id, {}))
+        for row in rows
+    ]
 
 
 @router.get("/policies", response_model=list[PolicyOut], responses=errors(AUTH, 404, 422))

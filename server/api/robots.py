@@ -21,10 +21,12 @@ from server.api.assistance import request_out
 from server.api.deps import Admin, FleetDep, Operator, Viewer, call_port, websocket_principal
 from server.api.responses import AUTH, BODY, errors
 from server.api.schemas import (
+    AskingOut,
     AssistanceRequestOut,
     CommandAccepted,
     Id,
     OperatorView,
+    PaperMetricOut,
     PoseOut,
     RobotDetail,
     RobotSummary,
@@ -69,7 +71,33 @@ def _uncertainty(robot: RobotView) -> UncertaintyOut | None:
     )
 
 
+def asking(robot: RobotView) -> AskingOut:
+    """The asking signal's numbers: the open request's (``RobotView.ask``, the queue's own record) while
+    the robot has one, else the signal's latest score and decision."""
+    name = robot.slot.asking or None
+    ask = robot.ask
+    if ask is None:
+        return AskingOut(
+            signal=name,
+            score=robot.scores.get(name) if name else None,
+            threshold=robot.slot.asking_threshold,
+            wants_help=robot.wants.get(name) if name else None,
+            reason=None,
+            asked_at_step=None,
+        )
+    return AskingOut(
+        signal=ask.signal,
+        score=ask.score,
+        threshold=ask.threshold,
+        wants_help=robot.wants.get(name) if name and ask.signal == name else None,
+        reason=ask.reason,
+        asked_at_step=ask.asked_at_step,
+    )
+
+
 def summary(robot: RobotView) -> RobotSummary:
+    """``uncertainty`` and ``threshold`` are the asking signal's (``asking``); the paper's metric is ``paper``."""
+    now = asking(robot)
     return RobotSummary(
         id=robot.id,
         task=robot.task,
@@ -77,8 +105,10 @@ def summary(robot: RobotView) -> RobotSummary:
         policy_version=robot.slot.version,
         episode_id=robot.episode_id,
         episode_step=robot.steps,
-        uncertainty=robot.u_history[-1] if robot.u_history else None,
-        threshold=robot.slot.threshold,
+        uncertainty=now.score,
+        threshold=now.threshold,
+        asking=now,
+        paper=PaperMetricOut(U=robot.u_history[-1] if robot.u_history else None, threshold=robot.slot.threshold),
     )
 
 
@@ -95,6 +125,7 @@ def detail(robot: RobotView) -> RobotDetail:
         gripper=frame.gripper if frame else None,
         bodies=_bodies(robot),
         u_history=list(robot.u_history),
+        score_history=list(robot.score_history),
         last_uncertainty=_uncertainty(robot),
         episodes_done=robot.episodes_done,
         successes=robot.successes,
@@ -121,7 +152,8 @@ async def get_robot(robot_id: Id, fleet: FleetDep, _: Viewer) -> RobotDetail:
 
 @router.get("/{robot_id}/view", response_model=OperatorView, responses=errors(AUTH, 404, 422), tags=ROBOTS)
 async def operator_view(robot_id: Id, fleet: FleetDep, _: Viewer) -> OperatorView:
-    """What a human operator sees: the scene's body poses, the goal and the last denoising result."""
+    """What a human operator sees: the scene's body poses, the goal, the last denoising result and why the
+    robot asked (``asking``)."""
     robot = _get(fleet, robot_id)
     frame = robot.frame
     return OperatorView(
@@ -133,6 +165,7 @@ async def operator_view(robot_id: Id, fleet: FleetDep, _: Viewer) -> OperatorVie
         bodies=_bodies(robot),
         goal=frame.goal if frame else {},
         last_uncertainty=_uncertainty(robot),
+        asking=asking(robot),
         episode_seed=robot.seed,
         step=frame.t if frame else None,
         clock=frame.clock if frame else None,

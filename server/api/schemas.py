@@ -118,11 +118,14 @@ class CommandAccepted(BaseModel):
 
 
 class UncertaintyOut(BaseModel):
+    """The paper's denoising metric at the robot's last scored step (not the asking signal's numbers:
+    those are ``AskingOut``)."""
+
     U: float
     D: float
     var_g: float
     n: int
-    threshold: float
+    threshold: float = Field(description="the paper's denoising threshold (the policy version's)")
     samples: list[Vec3]
     vectors: list[Vec3]
     labels: list[int]
@@ -135,6 +138,38 @@ class PoseOut(BaseModel):
     quaternion: Quaternion
 
 
+class AskingOut(BaseModel):
+    """Why the robot waits, or would ask: the asking signal's numbers. While the robot has an open
+    request (waiting, under teleop, or paused from either) they are that request's, equal to its entry in
+    ``GET /assistance`` (the score it asked with); otherwise the asking signal's latest."""
+
+    signal: str | None = Field(
+        description="the asking signal's name; 'watchdog' when the watchdog asked; null for help requested "
+        "through the service (a drill, a benchmark)"
+    )
+    score: float | None = Field(
+        description="the asking signal's score: the request's while one is open, else the latest (null: not scored yet)"
+    )
+    threshold: float | None = Field(description="the threshold the score is compared with (the request's)")
+    wants_help: bool | None = Field(
+        description="the asking signal's latest decision (null: not scored yet, or the watchdog or a requested "
+        "help asked)"
+    )
+    reason: str | None = Field(
+        description="while the robot has an open request: its reason, as the queue shows it; else null"
+    )
+    asked_at_step: int | None = Field(
+        description="while the robot has an open request: the episode clock step at which it asked; else null"
+    )
+
+
+class PaperMetricOut(BaseModel):
+    """The paper's denoising metric (U = D + α·Var_g), reported whatever signal asks."""
+
+    U: float | None = Field(description="U at the robot's last scored step (null: not computed yet)")
+    threshold: float = Field(description="the policy version's denoising threshold")
+
+
 class RobotSummary(BaseModel):
     id: int
     task: str
@@ -142,15 +177,25 @@ class RobotSummary(BaseModel):
     policy_version: int
     episode_id: int | None
     episode_step: int
-    uncertainty: float | None
-    threshold: float
+    uncertainty: float | None = Field(
+        description="the asking signal's score (``asking.score``: while the robot waits, the queue entry's "
+        "``uncertainty``); the paper's U is ``paper.U``"
+    )
+    threshold: float | None = Field(
+        description="the asking signal's threshold (``asking.threshold``); the paper's is ``paper.threshold``"
+    )
+    asking: AskingOut
+    paper: PaperMetricOut | None = Field(description="the paper's denoising metric; null: the version has none")
 
 
 class RobotDetail(RobotSummary):
     pose: PoseOut | None
     gripper: float | None
     bodies: dict[str, PoseOut]
-    u_history: list[float]
+    u_history: list[float] = Field(description="the paper's U per scored step, oldest first (at most 300)")
+    score_history: list[float] = Field(
+        description="the asking signal's score per scored step, oldest first (at most 300), as ``u_history``"
+    )
     last_uncertainty: UncertaintyOut | None
     episodes_done: int
     successes: int
@@ -169,6 +214,7 @@ class OperatorView(BaseModel):
     bodies: dict[str, PoseOut]
     goal: dict
     last_uncertainty: UncertaintyOut | None
+    asking: AskingOut
     episode_seed: int | None = Field(None, description="the seed of the robot's current episode")
     step: int | None = Field(None, description="steps since the episode's reset, holds included (frame t)")
     clock: int | None = Field(None, description="steps that count against the horizon (holds do not)")
@@ -177,11 +223,18 @@ class OperatorView(BaseModel):
 
 
 class AssistanceRequestOut(BaseModel):
+    """An open request, with the numbers it ranks by: the asking signal's, as the robot showed them when it
+    asked (the robot's ``asking`` holds the same while it waits)."""
+
     id: int
     robot_id: int
-    uncertainty: float
-    threshold: float
-    reason: str
+    signal: str | None = Field(
+        description="the signal that asked; 'watchdog' for the watchdog; null for help requested through the service"
+    )
+    score: float = Field(description="its score when the robot asked (1 for the watchdog and requested help)")
+    uncertainty: float = Field(description="the same as ``score`` (the asking signal's, not the paper's U)")
+    threshold: float = Field(description="the asking signal's threshold (1 for the watchdog and requested help)")
+    reason: str = Field(description="why it asked: the signal's name and its words, or the watchdog's")
     waiting_s: float
     priority: float = Field(
         description="the queue's order, highest first: the urgency (1 - threshold / score for a score over a "
@@ -214,7 +267,17 @@ class SegmentOut(BaseModel):
     task: str
     policy_id: int | None
     operator: str
-    reason: str
+    reason: str = Field(..., description="the reason of the request the takeover answered, as the queue showed it")
+    signal: str | None = Field(
+        None,
+        description="the request's signal: the asking signal's name, 'watchdog', or null for help requested "
+        "through the service and for takeovers recorded before it was stored",
+    )
+    score: float | None = Field(None, description="the request's score (null: recorded before it was stored)")
+    threshold: float | None = Field(None, description="the request's threshold (null: recorded before it was stored)")
+    paper_u: float | None = Field(
+        None, description="the paper's denoising U when the robot asked (null: not computed, or not stored)"
+    )
     status: str = Field(..., description="open, closed, or recovered (left open by a crash, rewritten at start)")
     ended_by: str | None = Field(
         None,
@@ -265,7 +328,11 @@ class PolicyOut(BaseModel):
     ref: str
     path: str
     task: str
-    threshold: float | None
+    threshold: float | None = Field(description="the paper's denoising threshold (its calibration)")
+    asking_signal: str | None = Field(
+        None, description="the signal that asks for help for the robots running it (null: no robot runs it now)"
+    )
+    asking_threshold: float | None = Field(None, description="that signal's threshold (null: no robot runs it now)")
     status: Literal["candidate", "active", "retired"]
     status_reason: str | None = Field(None, description="why: the promotion gate's decision, a promote, a rollback")
     parent_id: int | None

@@ -33,7 +33,9 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from policy.controller import WATCHDOG, Controller, RobotStep
 from server.errors import ServiceError
+from sim.frame import RobotFrame
 
 WAIT_SCALE_S = 10.0  # seconds of waiting worth the whole urgency range
 
@@ -46,8 +48,48 @@ def urgency(score: float, threshold: float) -> float:
     return 1.0 - threshold / score
 
 
+@dataclass(frozen=True)
+class AskRecord:
+    """Why a robot asked for help: what its request holds, built here once and shown the same by the queue,
+    the robot (``server.fleet.robot.Robot.ask``) and the takeover that answers it (``server.fleet.recording``).
+
+    signal: the asking signal's name, ``policy.controller.WATCHDOG`` when the watchdog asked, None for
+    help requested through the service (``Fleet.request_help``: drills, benchmarks); score, threshold:
+    that signal's score at the step it asked and its threshold (1 and 1 for the watchdog and requested
+    help: no scale, so they rank by their wait); reason: the words the queue shows; asked_at_step: the
+    episode's clock at that step (None without a frame); paper_u: the paper's denoising U at that step
+    (None when it was not computed)."""
+
+    signal: str | None
+    score: float
+    threshold: float
+    reason: str
+    asked_at_step: int | None = None
+    paper_u: float | None = None
+
+    @classmethod
+    def of_step(cls, step: RobotStep, controller: Controller, frame: RobotFrame) -> AskRecord:
+        """The request of a step on which the robot asked (``step.asked``): its signal's, or the watchdog's."""
+        paper_u = float(step.uncertainty.U) if step.uncertainty is not None else None
+        if step.asked_by == WATCHDOG:
+            reason = f"watchdog: {frame.clock} of {frame.horizon} steps without success"
+            return cls(WATCHDOG, 1.0, 1.0, reason, frame.clock, paper_u)
+        asking = controller.asking
+        value, threshold = float(step.scores[asking]), float(controller.signals[asking].threshold)
+        why = step.why or f"score {value:.3g} over {threshold:.3g}"
+        return cls(asking, value, threshold, f"{asking}: {why}", frame.clock, paper_u)
+
+    @classmethod
+    def requested(cls, reason: str, frame: RobotFrame | None) -> AskRecord:
+        """Help requested through the service, not by a signal (``Fleet.request_help``)."""
+        return cls(None, 1.0, 1.0, reason, frame.clock if frame is not None else None)
+
+
 @dataclass
 class AssistanceRequest:
+    """One robot's open request: ``uncertainty`` is the asking signal's score (``AskRecord.score``), and
+    ``ask`` the record it was opened with."""
+
     id: int
     robot_id: int
     uncertainty: float
@@ -60,6 +102,14 @@ class AssistanceRequest:
     claimed_at: float | None = None
     requeued: int = 0
     expired_holder: str | None = None  # who held the lease that ran out last
+    signal: str | None = None
+    asked_at_step: int | None = None
+    paper_u: float | None = None
+
+    @property
+    def ask(self) -> AskRecord:
+        """The record this request was opened with."""
+        return AskRecord(self.signal, self.uncertainty, self.threshold, self.reason, self.asked_at_step, self.paper_u)
 
     def priority(self, now: float, wait_scale: float = WAIT_SCALE_S) -> float:
         """Higher first: the urgency (in [0, 1], whatever the signal's scale) plus one unit per
@@ -79,11 +129,26 @@ class AssistanceQueue:
         self, robot_id: int, uncertainty: float, threshold: float, reason: str, now: float | None = None
     ) -> AssistanceRequest:
         """The robot's open request, or a new one opened at ``now`` (default: ``time.monotonic()``)."""
+        return self.ask(robot_id, AskRecord(None, uncertainty, threshold, reason), now)
+
+    def ask(self, robot_id: int, record: AskRecord, now: float | None = None) -> AssistanceRequest:
+        """The robot's open request, or a new one for ``record`` opened at ``now`` (default:
+        ``time.monotonic()``). The robot shows the answer's ``ask``: what the queue holds."""
         with self._lock:
             if robot_id in self._by_robot:
                 return self._by_robot[robot_id]
             created = time.monotonic() if now is None else now
-            req = AssistanceRequest(next(self._ids), robot_id, uncertainty, threshold, reason, created=created)
+            req = AssistanceRequest(
+                next(self._ids),
+                robot_id,
+                record.score,
+                record.threshold,
+                record.reason,
+                created=created,
+                signal=record.signal,
+                asked_at_step=record.asked_at_step,
+                paper_u=record.paper_u,
+            )
             self._by_robot[robot_id] = req
             return req
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import time
 
-from server.fleet.assistance import AssistanceQueue
+from server.fleet.assistance import AskRecord, AssistanceQueue
 from server.fleet.metrics import OperatorClock
 from server.fleet.modes import FleetMode
 from server.fleet.policy_swap import PolicySwap
@@ -122,27 +122,28 @@ class Lifecycle:
             if req is None or req.holder != h.operator:  # the request ended or the lease ran out meanwhile
                 continue
             if h.kind == "claim":
-                self.take_over(robot, h.operator, req.reason)
+                self.take_over(robot, h.operator, req.ask)
             else:
                 self.hand_back(robot)
         if handovers:
             robot.publish()
             robot.handovers.applied(len(handovers))
 
-    def take_over(self, robot: Robot, operator: str, reason: str) -> None:
-        """``operator`` holds the robot's request: a waiting robot goes under their control."""
+    def take_over(self, robot: Robot, operator: str, ask: AskRecord) -> None:
+        """``operator`` holds the robot's request (``ask``: its record): a waiting robot goes under their
+        control."""
         holder = self.recorder.takeover_operator(robot)
         if holder is not None and holder != operator:
             # the previous holder's lease ran out before a tick expired it: their takeover is over
             self.recorder.close_takeover(robot, "lease-expired")
             if robot.mode == FleetMode.TELEOP:
-                self.recorder.open_takeover(robot, operator, reason)
+                self.recorder.open_takeover(robot, operator, ask)
         if robot.mode == FleetMode.WAITING:
             robot.slot.controller.take_over(robot.id)
             robot.teleop_left = robot.slot.controller.teleop_left(robot.id)
             robot.set_mode(FleetMode.TELEOP)
             if self.recorder.takeover_operator(robot) is None:
-                self.recorder.open_takeover(robot, operator, reason)
+                self.recorder.open_takeover(robot, operator, ask)
 
     def hand_back(self, robot: Robot) -> None:
         """Control returns to the policy, which restarts from the next frame with a fresh history (an
@@ -157,6 +158,7 @@ class Lifecycle:
         """Closes the takeover's recording and request, and books the operator's time."""
         self.recorder.close_takeover(robot, ended_by)
         req = self.queue.close(robot.id)
+        robot.ask = None
         if req is not None and req.holder and req.claimed_at is not None:
             self.clock.add_busy(req.holder, time.monotonic() - req.claimed_at)
 

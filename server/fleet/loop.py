@@ -22,8 +22,8 @@ from collections import deque
 
 import numpy as np
 
-from policy.controller import WATCHDOG, Mode, RobotStep, ends_episode
-from server.fleet.assistance import AssistanceQueue
+from policy.controller import Mode, RobotStep, ends_episode
+from server.fleet.assistance import AskRecord, AssistanceQueue
 from server.fleet.lifecycle import Lifecycle
 from server.fleet.modes import FleetMode
 from server.fleet.recording import Recorder
@@ -184,30 +184,27 @@ class ControlLoop:
         elif self.inference_holds and robot.mode == FleetMode.AUTONOMOUS:
             log.info("inference answers again after %d held robot-steps", self.inference_holds)
             self.inference_holds = 0
+        controller = robot.slot.controller
+        asking = controller.asking
         if step.uncertainty is not None:
             robot.u_history.append(step.uncertainty.U)
             robot.last_result = step.uncertainty
+        if asking in step.scores:
+            robot.score_history.append(step.scores[asking])
         if step.scores:
-            robot.scores = dict(step.scores)
+            robot.scores, robot.wants = dict(step.scores), dict(step.wants)
         if step.source == keys.SOURCE_OPERATOR:
             robot.assisted_steps += 1
             self.recorder.takeover_step(robot, robot.frame, step)
         robot.set_mode(FleetMode.of(step.mode))
-        controller = robot.slot.controller
         robot.teleop_left = controller.teleop_left(robot.id) if robot.id in controller else None
         if robot.frame is not None:
             u = step.uncertainty.U if step.uncertainty is not None else None
-            robot.record(TimelinePoint(robot.frame.clock, robot.mode, step.scores.get(controller.asking or ""), u))
+            robot.record(TimelinePoint(robot.frame.clock, robot.mode, step.scores.get(asking or ""), u))
         if step.asked:
             robot.events += 1
-            asking = controller.asking
-            if step.asked_by == WATCHDOG:
-                f = robot.frame
-                self.queue.open(robot.id, 1.0, 1.0, f"watchdog: {f.clock} of {f.horizon} steps without success")
-            else:
-                value, threshold = step.scores[asking], controller.signals[asking].threshold
-                why = step.why or f"score {value:.3g} over {threshold:.3g}"
-                self.queue.open(robot.id, value, threshold, f"{asking}: {why}")
+            # the robot shows the request the queue holds: the same signal, score, threshold and reason
+            robot.ask = self.queue.ask(robot.id, AskRecord.of_step(step, controller, robot.frame)).ask
         if step.returned:
             self.lifecycle.hand_back(robot)
 

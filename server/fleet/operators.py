@@ -17,7 +17,7 @@ from dataclasses import replace
 
 from policy.controller import Mode
 from server.errors import ServiceError
-from server.fleet.assistance import AssistanceQueue, AssistanceRequest
+from server.fleet.assistance import AskRecord, AssistanceQueue, AssistanceRequest
 from server.fleet.handovers import Handover
 from server.fleet.lifecycle import Lifecycle
 from server.fleet.metrics import OperatorClock
@@ -48,7 +48,8 @@ class OperatorActions:
 
     # -- what readers see -------------------------------------------------------------------------------------
     def view(self, robot_id: int) -> RobotView:
-        """The robot as published, in the mode its pending claims and releases give it (``server.fleet.handovers``)."""
+        """The robot as published, in the mode its pending claims and releases give it (``server.fleet.handovers``):
+        one shown handed back shows no request either."""
         robot = self.robot(robot_id)
         if robot.view is None:
             with self.lock:
@@ -56,7 +57,9 @@ class OperatorActions:
         pending = robot.handovers.pending()  # before the view: each handover is in one or the other
         view = robot.view
         shown = robot.handovers.shown_mode(view.mode, pending)
-        return view if shown == view.mode else replace(view, mode=shown, teleop_left=None)
+        if shown == view.mode:
+            return view
+        return replace(view, mode=shown, teleop_left=None, ask=view.ask if shown != FleetMode.AUTONOMOUS else None)
 
     def views(self) -> list[RobotView]:
         return [self.view(i) for i in sorted(self.robots)]
@@ -82,7 +85,7 @@ class OperatorActions:
             robot.slot.controller.ask(robot.id, robot.frame.hold)
             robot.set_mode(FleetMode.WAITING)
             robot.events += 1
-            self.queue.open(robot.id, 1.0, 1.0, reason)
+            robot.ask = self.queue.ask(robot.id, AskRecord.requested(reason, robot.frame)).ask
             robot.publish()
 
     def claim(self, robot_id: int, operator: str):

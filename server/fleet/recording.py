@@ -14,6 +14,7 @@ depend on the working directory.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -25,6 +26,7 @@ from sqlalchemy.orm import sessionmaker
 
 from policy.controller import RobotStep
 from server.db import FINISHED, EpisodeRecord, SegmentRecord
+from server.fleet.assistance import AskRecord
 from server.fleet.robot import Robot
 from sim.frame import RobotFrame
 from sim.registry import make_task
@@ -35,6 +37,23 @@ from storage.paths import in_store, store_relative
 from storage.segments import SegmentReadError, SegmentWriter, recover_segment
 
 log = logging.getLogger("hitl.recording")
+
+
+def request_meta(ask: AskRecord) -> dict:
+    """A takeover file's ``request`` metadata: the request it answers (``storage.segments.Segment.request``);
+    a score that is not finite is null there (JSON has no infinity; the row's column keeps it)."""
+
+    def finite(x: float | None) -> float | None:
+        return float(x) if x is not None and math.isfinite(x) else None
+
+    return {
+        "signal": ask.signal,
+        "score": finite(ask.score),
+        "threshold": finite(ask.threshold),
+        "reason": ask.reason,
+        "asked_at_step": ask.asked_at_step,
+        "paper_u": finite(ask.paper_u),
+    }
 
 
 @dataclass(frozen=True)
@@ -172,8 +191,8 @@ class Recorder:
 
     def step_taken(self, robot: Robot, step: RobotStep) -> None:
         """The step the robot was just sent, with what the controller decided about it: the asking
-        signal's score and threshold, and on an operator step the command and the takeover it belongs
-        to. Written when its outcome arrives (``frame_arrived``)."""
+        signal's score and threshold, the paper's U, and on an operator step the command and the
+        takeover it belongs to. Written when its outcome arrives (``frame_arrived``)."""
         rec = self._of(robot)
         if rec.episode is None or robot.frame is None:
             return
@@ -183,6 +202,8 @@ class Recorder:
         if asking is not None and asking in step.scores:
             extras[keys.STEP_SCORE] = float(step.scores[asking])
             extras[keys.STEP_THRESHOLD] = float(controller.signals[asking].threshold)
+        if step.uncertainty is not None:
+            extras[keys.STEP_PAPER_U] = float(step.uncertainty.U)
         if step.command is not None and step.source == keys.SOURCE_OPERATOR:
             extras[keys.STEP_COMMAND] = step.command.to_dict()
             if rec.takeover_id is not None:
@@ -210,7 +231,10 @@ class Recorder:
         if (writer := self._of(robot).takeover) is not None:
             writer.maybe_flush()
 
-    def open_takeover(self, robot: Robot, operator: str, reason: str) -> None:
+    def open_takeover(self, robot: Robot, operator: str, ask: AskRecord) -> None:
+        """Opens the robot's takeover file and row. ``ask``: the request it answers, kept in the file's
+        ``request`` metadata and the row's signal, score, threshold, reason and paper_u; the metadata's
+        ``signal`` and ``threshold`` are the asking signal's, whose score each step records."""
         rec = self._of(robot)
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%f")
         path = self.data_dir / "segments" / f"robot{robot.id:03d}_ep{robot.episode_id}_{stamp}.mcap"
@@ -221,10 +245,11 @@ class Recorder:
             "policy": str(robot.slot.path),
             "operator": operator,
             "task": robot.task,
-            "reason": reason,
+            "reason": ask.reason,
             "seed": robot.seed,
-            "signal": (asking := robot.slot.controller.asking),
-            "threshold": None if asking is None else float(robot.slot.controller.signals[asking].threshold),
+            "signal": robot.slot.controller.asking,
+            "threshold": robot.slot.asking_threshold,
+            "request": request_meta(ask),
         }
         # the file names its observation's channels (what fine-tuning checks against the policy's); the row does not
         labels = {keys.OBS_LABELS: make_task(robot.task).obs_spec.labels()}
@@ -236,7 +261,11 @@ class Recorder:
                 task=robot.task,
                 policy_id=robot.slot.version,
                 operator=operator,
-                reason=reason,
+                reason=ask.reason,
+                signal=ask.signal,
+                score=ask.score,
+                threshold=ask.threshold,
+                paper_u=ask.paper_u,
                 status="open",
                 path=store_relative(self.data_dir, path),
                 meta=meta,

@@ -3,8 +3,10 @@
 ``Robot`` holds what the fleet knows of one robot: its worker, policy slot, episode, counters and mode.
 The mode is written in one place, ``Robot.set_mode`` (``pause`` and ``resume`` for an admin's pause):
 a paused robot stays paused through the transitions the loop makes meanwhile, and resumes into the
-mode they left it in. The recorder's per-robot state (open files, the step waiting for its outcome)
-is the recorder's own (``server.fleet.recording``).
+mode they left it in. ``Robot.ask`` is the record of the robot's open assistance request, the queue's
+own (``server.fleet.assistance.AskRecord``): set where the request is opened, cleared where it closes
+(``server.fleet.lifecycle.Lifecycle.end_takeover``). The recorder's per-robot state (open files, the
+step waiting for its outcome) is the recorder's own (``server.fleet.recording``).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from collections import deque
 from dataclasses import dataclass, field, fields, replace
 
 from policy.uncertainty import UncertaintyResult
+from server.fleet.assistance import AskRecord
 from server.fleet.commands import CommandMailbox
 from server.fleet.handovers import HandoverMailbox
 from server.fleet.modes import FleetMode
@@ -41,7 +44,10 @@ class TimelinePoint:
 
 @dataclass(frozen=True)
 class RobotView:
-    """A robot as the API shows it, copied at the end of each tick and after each service call."""
+    """A robot as the API shows it, copied at the end of each tick and after each service call.
+    u_history: the paper's denoising U per scored step; score_history: the asking signal's score per
+    scored step; scores / wants: every signal's score and decision at the last scored step; ask: the
+    open request's record (None when the robot has none)."""
 
     id: int
     task: str
@@ -51,6 +57,7 @@ class RobotView:
     episode_id: int | None
     steps: int
     u_history: tuple
+    score_history: tuple
     frame: RobotFrame | None
     last_result: UncertaintyResult | None
     episodes_done: int
@@ -60,6 +67,8 @@ class RobotView:
     restarts: int
     fault: str | None
     scores: dict
+    wants: dict
+    ask: AskRecord | None
     teleop_left: int | None
     timeline: tuple
 
@@ -80,9 +89,12 @@ class Robot:
     events: int = 0
     episodes_done: int = 0
     successes: int = 0
-    u_history: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))
+    u_history: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))  # the paper's U per scored step
+    score_history: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))  # the asking signal's score
     last_result: UncertaintyResult | None = None
     scores: dict = field(default_factory=dict)  # every signal's score at the last scored step
+    wants: dict = field(default_factory=dict)  # every signal's decision at the last scored step
+    ask: AskRecord | None = None  # the open assistance request's record (the queue's)
     teleop_left: int | None = None  # operator steps left in a budgeted assistance event
     timeline: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))  # TimelinePoint per step
     restarts: int = 0
@@ -126,7 +138,8 @@ class Robot:
     def publish(self) -> None:
         """A consistent copy of what the API shows, so readers never wait for a tick in progress."""
         values = {f.name: getattr(self, f.name) for f in fields(RobotView)}
-        self.view = RobotView(**values | {"u_history": tuple(self.u_history), "timeline": tuple(self.timeline)})
+        copies = {name: tuple(getattr(self, name)) for name in ("u_history", "score_history", "timeline")}
+        self.view = RobotView(**values | copies)
 
     def record(self, point: TimelinePoint) -> None:
         """Appends a step to the timeline. At the same clock (a robot holding while it waits) the last point

@@ -28,8 +28,9 @@ log = logging.getLogger("hitl.server")
 @dataclass
 class PolicySlot:
     """version: the ``PolicyVersion`` row's id; lineage: its name (``server.registry``); threshold: the
-    denoising metric's (what the console draws U against); controller: the one control step of this
-    version's robots."""
+    paper's denoising metric's threshold (what U is drawn against, and the registry row's ``threshold``),
+    not the asking signal's (``asking_threshold``); controller: the one control step of this version's
+    robots."""
 
     version: int
     path: Path
@@ -41,7 +42,18 @@ class PolicySlot:
 
     @property
     def asking(self) -> str:
+        """The asking signal's name ("" when none asks)."""
         return self.controller.asking or ""
+
+    @property
+    def asking_threshold(self) -> float | None:
+        """The asking signal's threshold: what its score is compared with to ask (None when none asks)."""
+        if not self.asking:
+            return None
+        try:
+            return float(self.controller.signals[self.asking].threshold)
+        except (KeyError, SignalError):  # not calibrated: the controller refuses such a signal to ask
+            return None
 
 
 def controller_config(settings: Settings) -> ControllerConfig:

@@ -27,15 +27,39 @@ NO_TAKEOVER = -1
 
 
 @dataclass(frozen=True)
+class TakeoverRequest:
+    """The assistance request a takeover answered: the asking signal's name ("watchdog" when the watchdog
+    asked, None for help requested through the service or not recorded), its score and threshold, the
+    reason the queue showed, and the paper's denoising U then. None where not recorded (takeovers
+    recorded before the service stored them)."""
+
+    signal: str | None = None
+    score: float | None = None
+    threshold: float | None = None
+    reason: str | None = None
+    paper_u: float | None = None
+
+    def as_dict(self) -> dict:
+        return {
+            "signal": self.signal,
+            "score": self.score,
+            "threshold": self.threshold,
+            "reason": self.reason,
+            "paper_u": self.paper_u,
+        }
+
+
+@dataclass(frozen=True)
 class TakeoverLabel:
     """An operator's verdict on one takeover: label (good, bad or None), discarded (kept on disk, never
-    trained on), a short note, who set it and when."""
+    trained on), a short note, who set it and when; and the request it answered (None: not known)."""
 
     label: str | None = None
     discarded: bool = False
     note: str | None = None
     labelled_by: str | None = None
     labelled_at: datetime | None = None
+    request: TakeoverRequest | None = None
 
     def as_dict(self) -> dict:
         return {
@@ -44,6 +68,7 @@ class TakeoverLabel:
             "note": self.note,
             "labelled_by": self.labelled_by,
             "labelled_at": None if self.labelled_at is None else self.labelled_at.isoformat(),
+            "request": None if self.request is None else self.request.as_dict(),
         }
 
 

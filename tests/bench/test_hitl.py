@@ -140,3 +140,82 @@ def test_cached_only_reports_what_has_not_run_yet(tmp_path, capsys):
     argv += ["--cache", str(tmp_path / "cache"), "--cached-only", "--json", "--quiet"]
     assert main(argv) == 2  # nothing has run: the sweep's thresholds are not known yet
     assert "reference rollouts" in capsys.readouterr().err
+
+
+def _shadow_raw(floor_first: int | None = 3):
+    """Two shadow episodes of task t: seed 1 fails alone (its score rises at steps 3-6), seed 2 succeeds."""
+    fail = {"seed": 1, "success": False, "steps": 10, "scores": {"s": [0, 0, 0, 5, 5, 5, 5, 0, 0, 9]}, "wants": {}}
+    ok = {"seed": 2, "success": True, "steps": 10, "scores": {"s": [1] * 10}, "wants": {"s": [0] * 9 + [1]}}
+    raw = {
+        "recipe": {"tasks": ["t"], "policies": {"t": "p"}, "false_alarm_task": "t", "budget": 4},
+        "recipe_hash": "h",
+        "reference": {},
+        "shadow": {"t": {"episodes": [fail, ok]}},
+        "assisted": [],
+    }
+    episodes = [
+        {"seed": 1, "success": True, "first_request": floor_first},
+        {"seed": 2, "success": True, "first_request": None},
+    ]
+    floor = {"tasks": {"t": {"floor": {"eval": {}, "episodes": episodes}, "best": None}}}
+    return raw, floor
+
+
+def test_the_floor_label_marks_the_states_where_the_oracles_help_rescued_an_episode():
+    raw, floor = _shadow_raw()
+    diag = summarize(raw, floor)["diagnostics"]["tasks"]["t"]
+    # the late label takes the failure's last 10 steps, among them the final 9: above every negative but not all
+    assert diag["auroc"]["s"] < 1.0
+    # the floor label takes steps 3..6 (4 operator steps from the oracle's first request): all above the negatives
+    assert diag["floor_positives"] == 4 and diag["floor_episodes"] == 1 and diag["auroc_floor"]["s"] == 1.0
+    raw, floor = _shadow_raw(floor_first=0)  # the oracle asked at the start: steps 0..3, one of them above
+    assert summarize(raw, floor)["diagnostics"]["tasks"]["t"]["auroc_floor"]["s"] == 0.25
+    assert "auroc_floor" not in summarize(raw)["diagnostics"]["tasks"]["t"]  # no floor given: the late label only
+
+
+def test_false_alarms_count_the_episodes_that_ask_at_all():
+    raw, _ = _shadow_raw()
+    fa = summarize(raw)["false_alarms"]["signals"]["s"]
+    assert fa["episodes_asking"] == 1.0 and fa["default"] == pytest.approx(0.1)  # one step of ten, in its one episode
+
+
+def test_the_headline_sets_the_paper_the_floor_the_shipped_signal_and_the_best_sweeps_side_by_side():
+    from bench.hitl.headline import markdown as headline
+
+    def pt(label, success, steps, events):
+        return {"label": label, "success_rate": success, "assisted_steps": steps, "events": events}
+
+    def row(default, curve=()):
+        r = {"default": default, "curve": list(curve), "skipped": None, "pending": 0}
+        pts = r["curve"] + ([default] if default else [])
+        r["best_100"] = min((p for p in pts if p["success_rate"] >= 1), key=lambda p: p["assisted_steps"], default=None)
+        return r
+
+    summary = {
+        "tasks": {
+            "open-drawer": {
+                "signals": {
+                    "full-teleop": row(pt("reference", 1.0, 100.0, 25.0)),
+                    "mine": row(pt("reference", 1.0, 4.0, 1.0), [pt("q0.5", 1.0, 2.0, 0.5)]),
+                    "denoising": row(pt("reference", 0.5, 10.0, 3.0), [pt("q0.5", 0.9, 40.0, 10.0)]),
+                    "other": row(pt("reference", 0.5, 10.0, 3.0)) | {"pending": 2},
+                }
+            }
+        },
+        "provenance": {"seeds": [1000, 1019], "command": "hitl bench hitl"},
+    }
+    floor = {
+        "tasks": {
+            "open-drawer": {"floor": None, "best": {"eval": {"success_rate": 0.95, "ratio": 0.04, "requests": 1.0}}}
+        }
+    }
+    text = headline(summary, floor, "mine")
+    assert "| paper, its metric (Table I) | 0.07 |" in text
+    assert "| paper, its best baseline | 0.14 (`diff-dagger`) |" in text
+    assert "| **floor** (oracle, best of its sweep) | — (95%: 0.04, 1.0) |" in text
+    assert "| **`mine`, the fleet's signal, as shipped** | 0.04, 1.0 |" in text  # its own calibration, not its sweep
+    assert "| `denoising`, the paper's metric, best of its sweep | — (90%: 0.40) |" in text
+    assert "| `mine`, best of its sweep | 0.02, 0.5 |" in text
+    assert "| `other`, best of its sweep | pending — (50%: 0.10) |" in text  # its sweep has cells to run
+    assert "pending:" not in text  # the run had none left (summary["pending_cells"])
+    assert text.index("`denoising`") < text.index("`mine`, best")

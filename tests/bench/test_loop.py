@@ -17,7 +17,7 @@ def test_the_loop_bench_serves_a_fleet_with_the_bot_and_reports_from_the_databas
     out = run_loop(4.0, "budgeted", config, tmp_path / "var", {"HITL_BUDGET": "2"}, progress=False)
     assert out["mode"] == "budgeted" and out["robots"] == 1
     assert out["bot"]["takeovers"] >= 1 and out["bot"]["commands"] >= 1 and out["bot"]["errors"] == 0
-    assert out["takeovers_asked_by"].get("spread-stall", 0) >= 1  # the default signal asked, the bot answered
+    assert out["takeovers_asked_by"].get("choice-stall", 0) >= 1  # the default signal asked, the bot answered
     assert set(out["takeovers_ended_by"]) <= {"hand-back", "service-stopped", "episode-ended"}
     assert out["episodes"] == sum(t["episodes"] for t in out["per_task"].values())
     assert out["interrupted"] >= 1  # the episode in progress when the service stopped

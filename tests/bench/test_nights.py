@@ -120,7 +120,7 @@ def test_days_and_nights_through_the_service_with_a_crash_mid_night(quick_fleet)
             # day 1 ran on policy@1; day 2 on what the gate left active (a refused candidate never serves)
             assert t["versions"] == {("policy@1" if day is day1 else serving): t["episodes"]}
             # the tiny policy's signal asks at once (its threshold is under every score): no watchdog
-            assert set(t["takeovers_by_cause"]) == {"spread-stall"}, t
+            assert set(t["takeovers_by_cause"]) == {"choice-stall"}, t
             assert t["assisted_steps_per_helped_episode"] >= t["assisted_steps_per_episode"]
     assert report["nights"][0]["jobs"][0]["gate"]["promote"] is promoted
     assert report["goals"]["day2"]["assisted_steps_ratio"] is not None

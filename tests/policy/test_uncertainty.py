@@ -213,3 +213,25 @@ def test_bad_centres_are_rejected():
         est(ONE, None, torch.tensor([[0.5, float("nan"), 0.5]]))
     with pytest.raises(ValueError, match="chunk_step"):
         UncertaintyEstimator(UncertaintyConfig(chunk_step=2))(ONE, None, CENTER, chunk=1)
+
+
+def test_a_chunk_probe_moves_the_whole_chunk_and_reads_the_step_it_names():
+    """With a plan, every step of the chunk is moved by the same offset, and the vectors are read at
+    ``chunk_step``: a field that pulls step 2 toward a point and leaves the others alone is seen there."""
+    from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
+
+    target = torch.tensor([0.3, -0.2, 0.1])
+
+    def eps(obs, actions, k):  # (B, S, C, D): step 2 is pulled toward target, the others feel nothing
+        out = torch.zeros_like(actions)
+        out[:, :, 2, :3] = actions[:, :, 2, :3] - target
+        return out
+
+    plan = torch.zeros(1, 4, 10)
+    plan[0, :, :3] = torch.linspace(0, 0.3, 4)[:, None]  # the chunk walks away from the current pose
+    est = UncertaintyEstimator(UncertaintyConfig(num_samples=32, chunk_step=2, backend="torch"))
+    result = est(eps, None, plan[:, 0], chunk=4, plan=plan)
+    assert torch.allclose(result.samples.mean(dim=1).float(), plan[0, 2, :3], atol=0.03)  # around step 2's pose
+    assert result.vectors.norm(dim=-1).min() > 0  # step 2's field, not step 0's (zero)
+    with pytest.raises(ValueError, match="plan must have shape"):
+        est(eps, None, plan[:, 0], chunk=4, plan=plan[:, :3])

@@ -9,12 +9,14 @@ import json
 import datasets
 import httpx
 import numpy as np
+import pandas as pd
 
 from hitl.cli import main
 from server.auth import create_token
 from server.db import SegmentRecord, make_engine, migrate, session_factory
 from server.settings import RobotGroup, Settings
 from storage import keys
+from storage.episodes import read_episode
 from tests.helpers import Service, free_port, tiny_policy_folder, wait_for
 
 
@@ -54,6 +56,9 @@ def test_labels_over_rest_and_the_fleet_export_with_the_takeover_inside_its_epis
         [segment] = httpx.get(api + "/segments", headers=h["viewer"]).json()
         sid = segment["id"]
         assert segment["label"] is None and segment["discarded"] is False  # unlabelled until an operator says
+        # the request it answered, in the queue's numbers, and the paper's U then
+        asked = ("signal", "score", "threshold", "reason")
+        assert [segment[k] for k in asked] == [request[k] for k in asked] and isinstance(segment["paper_u"], float)
 
         # labels over REST: only what is sent changes; who and when are recorded
         patch = lambda body, role="operator", i=sid: httpx.patch(  # noqa: E731
@@ -90,6 +95,10 @@ def test_labels_over_rest_and_the_fleet_export_with_the_takeover_inside_its_epis
 
     with sessions() as s:
         assert s.get(SegmentRecord, sid).labelled_by == "operator-1"
+    # the episode's file records the paper's U at each policy step, beside the asking signal's score
+    recorded = read_episode(settings.data_dir / "episodes" / f"robot000_ep{segment['episode_id']:06d}.mcap")
+    scored = [e for e, source in zip(recorded.extras, recorded.sources, strict=True) if source == keys.SOURCE_POLICY]
+    assert scored and all(isinstance(e[keys.STEP_PAPER_U], float) and keys.STEP_SCORE in e for e in scored)
     root = tmp_path / "export"
     store = ["--data-dir", str(settings.data_dir), "--database-url", settings.db_url]
     episode = ["--episode", str(segment["episode_id"])]  # the attempt with the takeover (the next one ran on)
@@ -114,6 +123,11 @@ def test_labels_over_rest_and_the_fleet_export_with_the_takeover_inside_its_epis
     assert (frames["policy_version"] >= 1).all()
     info = json.loads((root / "meta" / "info.json").read_text())
     assert info["codebase_version"] == "v3.0" and info["total_frames"] == len(frames["index"])
+    # each takeover's label comes with the request it answered
+    [episodes_file] = (root / "meta" / "episodes").glob("chunk-*/file-*.parquet")
+    [episode_row] = pd.read_parquet(episodes_file).to_dict("records")
+    takeover = json.loads(episode_row["hitl/takeovers"])[str(sid)]
+    assert takeover["request"] == {k: segment[k] for k in (*asked, "paper_u")}
 
     # the takeover alone
     alone = tmp_path / "alone"

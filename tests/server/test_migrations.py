@@ -12,7 +12,10 @@ from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import create_engine, inspect, text
 
-from server.db import MIGRATIONS, Base, make_engine
+from server.api.schemas import SegmentOut
+from server.db import MIGRATIONS, Base, SegmentRecord, make_engine, session_factory
+from server.labels import label_of
+from storage.lerobot.attempts import TakeoverRequest
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -54,7 +57,7 @@ def _columns(engine, table: str) -> set[str]:
 def test_each_migration_applies_in_turn_and_keeps_the_rows_written_before_it(empty_url):
     cfg = _config(empty_url)
     revisions = _revisions(cfg)
-    assert revisions[:6] == ["0001", "0002", "0003", "0004", "0005", "0006"]
+    assert revisions[:7] == ["0001", "0002", "0003", "0004", "0005", "0006", "0007"]
     engine = make_engine(empty_url)
     try:
         command.upgrade(cfg, "0001")
@@ -81,6 +84,26 @@ def test_each_migration_applies_in_turn_and_keeps_the_rows_written_before_it(emp
             if rev == "0006":
                 labels = {"label", "discarded", "note", "labelled_by", "labelled_at"}
                 assert _columns(engine, "segments") == segment_columns | {"ended_by"} | labels
+                with engine.begin() as conn:  # a takeover recorded by a 0006 service: no asking signal stored
+                    conn.execute(
+                        text(
+                            "INSERT INTO segments (id, robot_id, episode_id, task, operator, reason, status, steps,"
+                            " path, meta, started_at, discarded) VALUES (1, 0, 1, 'lift-cube', 'op',"
+                            " 'spread-stall: stall 2.4x its threshold', 'closed', 3, 'segments/a.mcap', '{}',"
+                            " '2026-01-01 00:00:00', false)"
+                        )
+                    )
+            if rev == "0007":
+                asked = {"signal", "score", "threshold", "paper_u"}
+                assert _columns(engine, "segments") == segment_columns | {"ended_by"} | labels | asked
+        # at head, through the models: the takeover recorded at 0006 reads as recorded before, not an error
+        with session_factory(engine)() as s:
+            row = s.get(SegmentRecord, 1)
+            out = SegmentOut.model_validate(row)
+            request = label_of(row).request
+        assert (out.signal, out.score, out.threshold, out.paper_u) == (None, None, None, None)
+        assert out.reason == "spread-stall: stall 2.4x its threshold" and out.steps == 3
+        assert request == TakeoverRequest(reason=out.reason)
     finally:
         engine.dispose()
 

@@ -63,14 +63,14 @@ def test_an_active_version_that_cannot_be_served_leaves_the_fleet_on_its_current
     folder = tiny_policy_folder(tmp_path / "policy-v2", "lift-cube", 1e9)
     v2 = registry.register(fleet.sessions, folder, "lift-cube", parent=v1.id)
     registry.promote(fleet.sessions, v2.ref)
-    (folder / "signals" / "spread-stall" / "config.json").unlink()  # the asking signal (the default) is gone
+    (folder / "signals" / "choice-stall" / "config.json").unlink()  # the asking signal (the default) is gone
     assert fleet.sync_policies() == [] and fleet.sync_policies() == []  # reported once, not retried
     assert _running(fleet, [v1.id])
     # through the service's own method it is refused and the registry left as it was
     registry.promote(fleet.sessions, v1.ref)
     with pytest.raises(ServiceError) as err:
         fleet.activate_policy(v2.id)
-    assert err.value.status == 422 and "spread-stall" in err.value.message
+    assert err.value.status == 422 and "choice-stall" in err.value.message
     assert registry.resolve(fleet.sessions, "policy").id == v1.id
     fleet.stop()
 

@@ -79,7 +79,7 @@ def test_takeover_round_trip_records_a_segment(service):
     wait_for(lambda: _robot(service, 0)["mode"] == "waiting")
     queue = httpx.get(api + "/assistance", headers=_h(service, "viewer")).json()
     [request] = [r for r in queue if r["robot_id"] == 0]
-    assert request["reason"].startswith("spread-stall: the policy is unsure: spread ")  # the signal's own words
+    assert request["reason"].startswith("choice-stall: the policy has a choice of which way to go")  # its own words
     before = _robot(service, 0)
     claim = httpx.post(api + "/robots/0/claim", headers=op)
     assert claim.status_code == 200, claim.text
@@ -120,6 +120,10 @@ def test_takeover_round_trip_records_a_segment(service):
         ]
     )[0]
     assert seg["steps"] == 3 and seg["operator"] == "operator-1"
+    # the request it answered, in the queue's numbers, and the paper's U when the robot asked
+    asked = ("signal", "score", "threshold", "reason")
+    assert [seg[k] for k in asked] == [request[k] for k in asked] and seg["signal"] == "choice-stall"
+    assert isinstance(seg["paper_u"], float)
     assert seg["started_at"].endswith(("+00:00", "Z"))  # times carry their zone
     data = httpx.get(f"{api}/segments/{seg['id']}/mcap", headers=_h(service, "viewer"))
     assert data.status_code == 200
@@ -129,17 +133,52 @@ def test_takeover_round_trip_records_a_segment(service):
     obs, labels = segment.labels()
     assert obs.shape[0] == labels.shape[0] == 3 and np.isfinite(labels).all()
     assert segment.meta["robot"] == 0 and segment.end["status"] == "closed"
+    assert segment.request["reason"] == request["reason"] and segment.request["paper_u"] == seg["paper_u"]
     # the file names its observation's channels (what fine-tuning checks against the policy's layout)
     lift = make_task("lift-cube").obs_spec
     assert segment.meta["obs_labels"] == lift.labels() and obs.shape[1] == lift.dim
     assert [s.command["delta_pos"] for s in segment.steps] == [[0.0, 0.0, 0.01]] * 3
     # every score but the denoising U (recorded on its own): the asking signal (the default) and the shadows
-    assert all(set(s.shadow) == {"spread-stall", "output-variance", "random"} for s in segment.steps)
+    assert all(set(s.shadow) == {"choice-stall", "output-variance", "random"} for s in segment.steps)
     fields = segment.fields
     assert len(fields) == 3 and len(fields[0]["entities"][0]["arrows"]) > 0  # the vector field, for Foxglove
     assert before["episode_id"] == start["episode_id"]
     # the operator's three 1 cm steps up moved the end effector up (the arm lags its targets)
     assert _robot(service, 0)["pose"]["position"][2] > z0 + 0.005
+
+
+def test_a_waiting_robot_says_why_in_the_numbers_the_queue_uses(service):
+    """``GET /robots/{id}`` of a waiting robot: its asking signal's name, score, threshold and reason are
+    its queue entry's, and so are the old ``uncertainty`` and ``threshold``; the paper's U and threshold
+    are ``paper``, apart."""
+    api, viewer = service.url + "/api/v1", _h(service, "viewer")
+
+    def a_waiting_robot():  # read before the queue: a robot shown waiting has its request open
+        waiting = [r["id"] for r in httpx.get(api + "/robots", headers=viewer).json() if r["mode"] == "waiting"]
+        return waiting[:1]
+
+    [rid] = wait_for(a_waiting_robot)
+    queue = httpx.get(api + "/assistance", headers=viewer).json()
+    [request] = [r for r in queue if r["robot_id"] == rid]
+    robot = _robot(service, rid)
+    assert robot["mode"] == "waiting" and request["holder"] is None  # nobody took it meanwhile
+    asking = robot["asking"]
+    assert (asking["score"], asking["threshold"], asking["reason"]) == (
+        request["uncertainty"],
+        request["threshold"],
+        request["reason"],
+    )
+    assert (robot["uncertainty"], robot["threshold"]) == (request["score"], request["threshold"])
+    assert asking["signal"] == request["signal"] == "choice-stall" and asking["reason"].startswith("choice-stall: ")
+    assert isinstance(asking["asked_at_step"], int) and asking["wants_help"] is True
+    # the paper's denoising metric, a field of its own: its U (the last denoising result's) and threshold (-1)
+    assert robot["paper"] == {"U": robot["last_uncertainty"]["U"], "threshold": -1.0}
+    assert robot["paper"]["U"] == robot["u_history"][-1] and robot["threshold"] == 1.0  # choice-stall's
+    assert len(robot["score_history"]) == len(robot["u_history"])
+    # the list and the operator view say the same
+    [listed] = [r for r in httpx.get(api + "/robots", headers=viewer).json() if r["id"] == rid]
+    view = httpx.get(f"{api}/robots/{rid}/view", headers=viewer).json()
+    assert listed["asking"] == view["asking"] == asking
 
 
 def test_an_expired_lease_requeues_the_request(service):

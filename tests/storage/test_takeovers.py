@@ -39,7 +39,9 @@ def test_successful_only_keeps_takeovers_of_episodes_that_succeeded():
 
 
 def test_a_segment_reads_as_typed_steps_and_a_malformed_step_is_named(tmp_path):
-    step = read_segment(_segment(tmp_path / "a.mcap", 2)).steps[1]
+    segment = read_segment(_segment(tmp_path / "a.mcap", 2))
+    assert segment.request is None  # written without the request it answered (before it was recorded): none
+    step = segment.steps[1]
     assert isinstance(step, SegmentStep) and step.t == 1 and step.observation == [1.0] * 26
     assert step.position == [0.0, 0.0, 0.9] and step.quaternion == [0, 0, 0, 1.0] and step.command == {}
     assert step.uncertainty is None and step.shadow == {} and len(step.action) == len(step.action_normalized) == 10

@@ -95,6 +95,7 @@ def test_pose_delta_is_the_world_frame_step_to_a_target():
 class _Slot:
     threshold = 2.0
     asking = "spread"
+    version = 1
 
     class controller:  # noqa: N801 - the attribute the panel reads
         class _Signal:
@@ -197,3 +198,27 @@ def test_the_takeover_list_shows_notes_and_names_as_text_never_as_html():
 
     req = AssistanceRequest(1, 0, 1.0, 0.5, "spread: over", created=0.0, holder="<img src=x onerror=alert(3)>")
     assert "<img" not in queue_row(req, None, 1.0, "someone else") and "&lt;img" in queue_row(req, None, 1.0, "me")
+
+
+def test_the_panel_shows_the_request_a_robot_waits_on_and_the_papers_u_apart():
+    """A waiting robot shows its request's signal, score and threshold (the queue's); one without a request,
+    its asking signal's latest score; the paper's U stays in a column of its own."""
+    from server.fleet.assistance import AskRecord, AssistanceQueue
+    from web.panels import FleetSnapshot, overview_markdown, robot_markdown
+
+    robot = Robot(id=0, task="lift-cube", slot=_Slot(), seed=0, commands=CommandMailbox(TeleopLimits()))
+    robot.scores = {"spread": 0.3}
+    robot.u_history.append(0.062)
+    robot.publish()
+    header, _, row = overview_markdown(FleetSnapshot({0: robot.view}, ()), "me").splitlines()
+    assert "Asking: score / threshold | Paper's U / threshold" in header
+    assert "| spread: 0.3 / 0.5 | 0.062 / 2 |" in row
+    queue = AssistanceQueue(10.0)
+    robot.ask = queue.ask(0, AskRecord("spread", 2.4, 0.5, "spread: stall 2.4× its threshold", 7, 0.062)).ask
+    robot.set_mode("waiting")
+    robot.publish()
+    snap = FleetSnapshot({0: robot.view}, tuple(queue.pending()))
+    assert "| spread: 2.4 / 0.5 ⚠ | 0.062 / 2 |" in overview_markdown(snap, "me").splitlines()[2]
+    text = robot_markdown(robot.view, snap.request(0), snap.now, "me", make_task("lift-cube"))
+    assert "| **spread** (asked at step 7) | 2.4 | 0.5 |" in text
+    assert "**Asked:** spread: stall 2.4× its threshold" in text

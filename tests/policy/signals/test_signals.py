@@ -23,6 +23,8 @@ CALIBRATION_SAMPLES = {
     "spread": 12,
     "stall": None,  # the validation steps whose gripper is open now and in the policy's sampled action
     "spread-stall": 12,  # spread's samples: every validation step
+    "choice": 12,
+    "choice-stall": 12,  # choice's samples: every validation step
     "full-teleop": 0,
     "random": 0,
 }
@@ -36,6 +38,8 @@ FAST = {  # keep every auxiliary training and calibration tiny
     "spread": {"num_samples": 8, "noise_step": 10},
     "stall": {"calibration_batch": 5},
     "spread-stall": {"num_samples": 8, "noise_step": 10},
+    "choice": {"num_samples": 8},
+    "choice-stall": {"num_samples": 8},
     "full-teleop": {},
     "random": {"rate": 0.5},
 }
@@ -421,3 +425,20 @@ def test_spread_draws_each_robots_noise_from_its_own_stream(tiny):
     signal.reset()
     alone = signal.score(SignalInput(data.val.obs[2:3], data.val.current[2:3], np.array([9]), action=action[2:3]))
     np.testing.assert_allclose(alone.parts["spread"], full.parts["spread"][2:3], rtol=1e-5)
+
+
+def test_the_paper_metric_on_a_chunk_probes_where_the_chunk_will_reach(tiny):
+    """``center = "chunk"``: the probe is the policy's chunk moved by the ball's offsets, read at the chunk's
+    last executed step; its samples lie around that step's pose, not around the current one."""
+    policy, data = tiny
+    signal = make_signal("denoising", policy, {"num_samples": 16, "max_modes": 2, "center": "chunk"})
+    last = min(policy.config.n_action_steps, policy.config.action_horizon) - 1
+    assert signal.estimator.config.chunk_step == last
+    batch = _batch(data, np.arange(2), np.array([1, 2]))
+    plan = torch.as_tensor(data.val.action[:2]).clone()
+    plan[:, last, :3] += 0.3  # the chunk goes 30 cm away from where it starts
+    batch.action = plan
+    result = signal.score(batch).detail
+    reached = policy.normalize_action(plan)[:, last, :3].double()
+    assert torch.allclose(result.samples.mean(dim=1), reached, atol=0.05)
+    assert np.isfinite(signal.score(batch).value).all()

@@ -482,3 +482,94 @@ def test_a_claim_whose_request_ends_before_the_next_tick_changes_nothing(tmp_pat
     with pytest.raises(ServiceError) as gone:
         fleet.command(0, "op", UP)
     assert gone.value.status == 409
+
+
+def test_a_waiting_robot_shows_the_request_the_queue_holds_and_its_takeover_records_it(tmp_path):
+    """The robot's asking numbers are its request's, the queue's own (not the paper's U and threshold);
+    the takeover answering it records them; once handed back the robot shows the live score again."""
+    from server.api.assistance import request_out
+    from server.api.robots import detail, summary
+    from server.db import SegmentRecord
+    from storage.paths import in_store
+    from storage.segments import read_segment
+
+    fleet, _ = _fleet(tmp_path, budget=2)
+    fleet.tick()  # threshold -1: choice-stall (threshold 1) asks at once
+    view, req = fleet.view(0), fleet.queue.get(0)
+    assert view.mode == "waiting" and view.ask == req.ask
+    out, queued = summary(view), request_out(req)
+    assert (out.asking.score, out.asking.threshold, out.asking.reason) == (
+        queued.uncertainty,
+        queued.threshold,
+        queued.reason,
+    )
+    assert (out.uncertainty, out.threshold) == (queued.score, queued.threshold) == (queued.uncertainty, 1.0)
+    assert out.asking.signal == queued.signal == "choice-stall" and out.asking.wants_help is True
+    assert out.asking.asked_at_step == view.frame.clock and queued.reason.startswith("choice-stall: ")
+    # the paper's metric is a field of its own: its U and the denoising threshold (-1), not the asking signal's
+    assert out.paper.threshold == -1.0 and out.paper.U == view.u_history[-1] == req.paper_u
+    history = detail(view)
+    assert len(history.score_history) == len(history.u_history) == 1 and history.score_history == [queued.score]
+
+    fleet.claim(0, "op")
+    fleet.command(0, "op", UP)
+    fleet.tick()  # the claim applies, one operator step
+    teleop = summary(fleet.view(0))
+    assert fleet.view(0).mode == "teleop" and teleop.asking.reason == queued.reason  # still the request's
+    assert teleop.uncertainty == queued.uncertainty  # the score it asked with, not the operator step's
+    fleet.release(0, "op")
+    shown = fleet.view(0)  # handed back at once, before the next tick applies it
+    assert shown.mode == "autonomous" and summary(shown).asking.reason is None
+    fleet.tick()
+    with fleet.sessions() as s:
+        [row] = s.scalars(select(SegmentRecord)).all()
+    assert (row.signal, row.score, row.threshold, row.reason, row.paper_u) == (
+        "choice-stall",
+        req.uncertainty,
+        req.threshold,
+        req.reason,
+        req.paper_u,
+    )
+    segment = read_segment(in_store(fleet.data_dir, row.path))
+    assert segment.request == {
+        "signal": "choice-stall",
+        "score": req.uncertainty,
+        "threshold": 1.0,
+        "reason": req.reason,
+        "asked_at_step": req.asked_at_step,
+        "paper_u": req.paper_u,
+    }
+    assert (segment.meta["signal"], segment.meta["threshold"]) == ("choice-stall", 1.0)  # whose score steps hold
+    fleet.stop()
+
+
+def test_the_watchdogs_and_a_requested_help_show_as_the_queue_ranks_them(tmp_path):
+    from server.api.robots import summary
+
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=10, watchdog=0.5, budget=1)
+    fleet.tick()
+    # a robot that has not asked shows the asking signal's latest score and threshold, and no reason
+    live = summary(fleet.view(0)).asking
+    assert live.signal == "choice-stall" and live.reason is None and live.asked_at_step is None
+    assert live.score == fleet.view(0).scores["choice-stall"] and live.threshold == 1.0 and live.wants_help is False
+    for _ in range(5):
+        fleet.tick()
+    req = fleet.queue.get(0)
+    asking = summary(fleet.view(0)).asking
+    assert (asking.signal, asking.score, asking.threshold, asking.reason, asking.wants_help) == (
+        "watchdog",
+        req.uncertainty,
+        req.threshold,
+        "watchdog: 5 of 10 steps without success",
+        None,
+    )
+    assert (req.uncertainty, req.threshold, asking.asked_at_step) == (1.0, 1.0, 5)
+    fleet.claim(0, "op")
+    fleet.command(0, "op", UP)
+    fleet.tick()  # the budget of one step: handed back
+    assert fleet.view(0).mode == "autonomous" and fleet.view(0).ask is None
+    fleet.request_help(0, "drill")
+    drill = summary(fleet.view(0)).asking
+    assert (drill.signal, drill.score, drill.threshold, drill.reason) == (None, 1.0, 1.0, "drill")
+    assert fleet.queue.get(0).ask == fleet.view(0).ask
+    fleet.stop()
