@@ -7,9 +7,9 @@ EXTRAS ?= dev
 comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
-.PHONY: install demo test lint docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
+.PHONY: install osmesa demo test lint docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
-	resume-docs nights-docs nights-lift-docs asking-dev-docs choice-dev-docs \
+	resume-docs nights-docs nights-lift-docs operators-docs asking-dev-docs choice-dev-docs \
 	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs lift-variants-docs clean
 
 $(BIN)/python:
@@ -21,7 +21,17 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[$(EXTRAS)]"
 	touch $(STAMP)
 
-install: $(STAMP)
+install: $(STAMP) osmesa
+
+# The console's camera views render with MuJoCo through OSMesa (server/cameras.py): Debian's libosmesa6,
+# installed when missing (as root, or with passwordless sudo); without it the console says so and runs without
+# camera views.
+osmesa:
+	@if ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then \
+		SUDO=""; if [ "$$(id -u)" != 0 ]; then SUDO="sudo -n"; fi; \
+		($$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libosmesa6) >/dev/null 2>&1 \
+			|| echo "hitl: could not install libosmesa6 (apt-get install -y libosmesa6): no camera views in the console"; \
+	fi
 
 # The fleet service with 6 simulated robots on the bundled policies; prints the API docs URL and a
 # fresh operator token. In another shell: .venv/bin/hitl operator-bot --url http://127.0.0.1:8000 --token TOKEN
@@ -249,6 +259,16 @@ nights-lift-docs: install
 	rm -rf var/bench-nights-lift
 	$(BIN)/hitl bench nights --config configs/nights-lift.toml --days 2 --day-minutes 10 --data-dir var/bench-nights-lift \
 		--out docs/results/nights/lift.json --figure docs/figures/nights-lift.png --quiet > /dev/null
+
+# docs/benchmarks/service.md, "Robots per operator": fleets of 5-20 robots (70% lift-cube, 10% each of lift-hammer,
+# cup-stack and open-drawer) served by one simulated operator at a person's pace through hitl serve, on a 5 Hz clock
+# (this machine does not step 20 robots at 10 Hz); then the queue's orders compared at 10 robots (about 45 min)
+operators-docs: install
+	rm -rf var/bench-operators
+	$(BIN)/hitl bench operators --sizes 5 10 15 20 --control-hz 5 --ticks 1500 --data-dir var/bench-operators \
+		--out docs/results/service/operators.json --figure docs/figures/operators.png --quiet > /dev/null
+	for o in cur fcfs; do $(BIN)/hitl bench operators --sizes 10 --control-hz 5 --ticks 1500 --order $$o \
+		--data-dir var/bench-operators --out docs/results/service/operators-$$o.json --quiet > /dev/null || exit 1; done
 
 # docs/benchmarks/nights.md, "Why lift-cube robots asked": the bundled lift policy on lift-cube with the fleet's
 # asking (spread-stall, continuous, cooldown 10) on development seeds, the watchdog at half and at 80% of the

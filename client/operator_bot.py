@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import time
+from dataclasses import dataclass
 
 import httpx
 import numpy as np
@@ -40,6 +42,26 @@ def overtime(view: dict) -> bool:
     return isinstance(clock, int) and isinstance(horizon, int) and horizon > 0 and clock >= OVERTIME * horizon
 
 
+@dataclass(frozen=True)
+class HumanPace:
+    """What a person needs that a script does not, in seconds (``hitl bench operators`` gives them in
+    control ticks): claim_s, from seeing a request at the head of the queue to claiming it; switch_s,
+    more when the robot is not the one served last (finding it, reading its scene); min_takeover_s, the
+    least time a takeover occupies the operator, from the claim on, however soon the robot is handed
+    back (Fleet-DAgger's minimum intervention time, counted on the operator's side: the service, not the
+    operator, decides the hand-back here)."""
+
+    claim_s: float = 0.0
+    switch_s: float = 0.0
+    min_takeover_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("claim_s", "switch_s", "min_takeover_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+
+
 class TakeoverOver(Exception):
     """The takeover cannot go on: the service handed control back, the episode ended, or the robot is gone."""
 
@@ -57,15 +79,21 @@ class OperatorBot:
         timeout: float = 10.0,
         hands_back_when_held: bool = False,
         style: OperatorStyle | str = OperatorStyle.CARRY_ON,
+        pace: HumanPace | None = None,
     ) -> None:
         """hands_back_when_held: release a robot once the object it was asked about is held (``Expert.holding``;
         as ``policy.assisted.ExpertOperator`` does with it), instead of driving until the service hands back;
-        style: how it plans at each request (``sim.experts.OperatorStyle``)."""
+        style: how it plans at each request (``sim.experts.OperatorStyle``); pace: a person's delays (default:
+        none, the bot answers at once)."""
         self.api = url.rstrip("/") + "/api/v1"
         self.style = OperatorStyle(style)
         self.hands_back_when_held = hands_back_when_held
         self.client = httpx.Client(headers={"Authorization": f"Bearer {token}"}, timeout=timeout)
         self.heartbeat_s = heartbeat_s
+        self.pace = pace or HumanPace()
+        self.busy_s = 0.0  # time spent on requests: the delays, the takeovers and the rest of each minimum
+        self._serving_since: float | None = None  # when the request in progress began (None: idle)
+        self.last_robot: int | None = None
         self.takeovers = 0
         self.commands = 0
         self.errors = 0  # network errors and unexpected answers, each logged
@@ -156,6 +184,34 @@ class OperatorBot:
             self.takeovers += 1
         return steps
 
+    def _serve(self, robot_id: int, stop=None) -> int:
+        """One request at the pace of a person: the delays before the claim, the takeover, and the rest of
+        the minimum takeover time; the time it all took counts as busy (``busy_at``). ``stop()`` true after
+        the delays: no claim."""
+        started = self._serving_since = time.monotonic()
+        try:
+            delay = self.pace.claim_s + (self.pace.switch_s if robot_id != self.last_robot else 0.0)
+            if delay:
+                time.sleep(delay)
+            if stop is not None and stop():
+                return 0
+            claimed = time.monotonic()
+            steps = self.takeover(robot_id, seed=self.takeovers)
+            if steps:
+                self.last_robot = robot_id
+                rest = self.pace.min_takeover_s - (time.monotonic() - claimed)
+                if rest > 0:
+                    time.sleep(rest)
+            return steps
+        finally:
+            self.busy_s += time.monotonic() - started
+            self._serving_since = None
+
+    def busy_at(self, now: float) -> float:
+        """Seconds busy up to ``now`` (``time.monotonic``), the request in progress counted so far."""
+        since = self._serving_since
+        return self.busy_s + (max(0.0, now - since) if since is not None else 0.0)
+
     def _expert_for(self, robot_id: int, task: OperatorView, raw: dict, seed: int):
         """The expert driving this robot, as the in-process simulated operator has it
         (``policy.assisted.ExpertOperator``): one per episode, re-planned at each request from the view,
@@ -198,7 +254,7 @@ class OperatorBot:
                 if req is None:
                     time.sleep(idle_sleep)
                     continue
-                steps = self.takeover(req["robot_id"], seed=self.takeovers)
+                steps = self._serve(req["robot_id"], stop)
                 log.info("robot %d: drove %d steps", req["robot_id"], steps)
                 backoff = idle_sleep
             except (httpx.HTTPError, TakeoverOver, KeyError, TypeError, ValueError) as exc:

@@ -189,6 +189,40 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_operators(args: argparse.Namespace) -> int:
+    import json
+
+    from bench.operators import OPERATORS_CONFIG, FleetMix, OperatorsPlan, Pace, run_operators
+
+    plan = OperatorsPlan(
+        sizes=tuple(args.sizes),
+        mix=FleetMix.parse(args.mix),
+        ticks=args.ticks,
+        control_hz=args.control_hz,
+        pace=Pace(args.claim_ticks, args.switch_ticks, args.min_takeover_ticks),
+        order=args.order,
+        config=args.config or OPERATORS_CONFIG,
+        overrides=_settings_env(args.set),
+    )
+    compare = []
+    for item in args.compare or []:
+        label, sep, path = item.partition("=")
+        if not sep:
+            raise ValueError(f"--compare takes LABEL=FILE, got {item!r}")
+        compare.append((label, json.loads(Path(path).read_text())))
+    result = run_operators(plan, args.data_dir, not args.quiet)
+    text = json.dumps(result, indent=None if args.json else 2)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    if args.figure is not None:
+        from bench.operators_figure import plot_operators
+
+        plot_operators([(args.label, result), *compare], args.figure)
+    print(text)
+    return 0
+
+
 def _settings_env(items: list[str] | None) -> dict[str, str]:
     """``--set KEY=VALUE`` items as ``HITL_KEY`` variables for the service."""
     env = {}
@@ -363,6 +397,31 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_loop)
+
+    q = bench.add_parser(
+        "operators",
+        help="robots per operator: fleets of each size served by one simulated operator, through the service",
+    )
+    q.add_argument("--sizes", type=int, nargs="+", default=[5, 10, 15, 20], help="fleet sizes, each a fresh service")
+    q.add_argument(
+        "--mix", nargs="+", metavar="TASK=SHARE", help="default lift-cube=0.7 and 0.1 of hammer, cup, drawer"
+    )
+    q.add_argument("--ticks", type=int, default=3000, help="ticks of the fleet's clock each size runs")
+    q.add_argument("--control-hz", type=float, default=None, help="the fleet's clock (default: the config's, 10 Hz)")
+    q.add_argument("--order", choices=["priority", "cur", "fcfs"], default="priority", help="the queue's order")
+    q.add_argument("--claim-ticks", type=int, default=10, help="the operator's delay to claim a request")
+    q.add_argument("--switch-ticks", type=int, default=20, help="further delay when switching to another robot")
+    q.add_argument("--min-takeover-ticks", type=int, default=20, help="the least time a takeover occupies them")
+    q.add_argument("--config", type=Path, default=None, help="service config (default: configs/operators.toml)")
+    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. signal=spread-stall")
+    q.add_argument("--data-dir", type=Path, default=None, help="where each size's service folder goes (default: temp)")
+    q.add_argument("--out", type=Path, default=None, help="also write the JSON report here")
+    q.add_argument("--figure", type=Path, default=None, help="success and queue wait against the fleet's size")
+    q.add_argument("--label", default="today", help="this run's label in the figure")
+    q.add_argument("--compare", nargs="+", metavar="LABEL=FILE", help="earlier reports drawn beside it")
+    q.add_argument("--json", action="store_true")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_operators)
 
     q = bench.add_parser(
         "nights", help="days of the fleet with an operator, nights of fine-tuning by the service's scheduler"

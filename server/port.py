@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Protocol
 
 from server import registry
+from server.cameras import CameraView
 from server.fleet.assistance import AssistanceRequest
 from server.fleet.metrics import MetricsReport
 from server.fleet.robot import RobotView
@@ -53,6 +54,11 @@ class FleetPort(Protocol):
         ...
 
     def metrics(self) -> MetricsReport: ...
+
+    def camera_view(self, robot_id: int) -> CameraView:
+        """The robot's latest camera views, or why there are none (``server.cameras``); asking marks the
+        robot watched, and only watched robots are rendered. ``ServiceError`` 404 for an unknown robot."""
+        ...
 
     def lineages(self, max_age: float = 5.0) -> tuple[registry.LineageSummary, ...]: ...
 

@@ -202,6 +202,12 @@ class Settings(BaseSettings):
         "once, whatever its signal says (unset: only the signal asks)",
     )
     lease_seconds: float = Field(10.0, gt=0, le=3600)
+    queue_order: Literal["priority", "cur", "fcfs"] = Field(
+        "priority",
+        description="how the assistance queue ranks requests: 'priority' (urgency plus wait, no robot starves), "
+        "'cur' (Fleet-DAgger's: stalled robots, then urgency), 'fcfs' (first come, first served); "
+        "server/fleet/assistance.py",
+    )
     api_workers: int = Field(
         0,
         ge=0,
@@ -215,6 +221,15 @@ class Settings(BaseSettings):
         "127.0.0.1 port that any local process can reach: docs/console.md)",
     )
     record_episodes: bool = False
+    cameras: bool = Field(
+        True, description="render the front and wrist camera views of robots someone watches (server/cameras.py)"
+    )
+    camera_hz: float = Field(2.0, gt=0, le=30, description="camera views per second of each watched robot")
+    camera_gl: Literal["osmesa", "egl"] = Field(
+        "osmesa", description="the camera renderer's OpenGL: osmesa (software, any machine) or egl (a GPU)"
+    )
+    camera_width: int = Field(160, ge=16, le=1280)
+    camera_height: int = Field(120, ge=16, le=960)
     segment_flush_seconds: float = Field(
         0.0,
         ge=0,

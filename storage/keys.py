@@ -67,3 +67,5 @@ SCHEMA_TAKEOVER = "hitl.Takeover"
 SCHEMA_TAKEOVER_STEP = "hitl.TakeoverStep"
 SCHEMA_TAKEOVER_END = "hitl.TakeoverEnd"
 SCHEMA_SCENE_UPDATE = "foxglove.SceneUpdate"
+TOPIC_CAMERA = "/camera/{name}/image/compressed"  # foxglove.CompressedImage: each camera view the operator saw
+SCHEMA_COMPRESSED_IMAGE = "foxglove.CompressedImage"

@@ -12,13 +12,16 @@ action and the same action in the policy's normalized action space (the fine-tun
 U (``uncertainty``) and every other signal's score (``shadow``, the asking signal's included), and the
 end-effector pose. ``/tf`` carries the end effector and
 ``/denoising/field`` the denoising vector field as a ``foxglove.SceneUpdate`` of arrows coloured
-by mode. The writer flushes at least every ``flush_seconds`` (the service: after every step, so a
-crash of the server loses no step it applied; docs/service.md, "Durability");
+by mode. ``/camera/{front,wrist}/image/compressed`` carry the camera views the operator was shown
+(``foxglove.CompressedImage``, JPEG; ``frame_id`` names the episode step it shows), when the console
+showed them (``server.cameras``). The writer flushes at least every ``flush_seconds`` (the service:
+after every step, so a crash of the server loses no step it applied; docs/service.md, "Durability");
 ``read_segment(path, recover=True)`` salvages a file left open by a crash.
 """
 
 from __future__ import annotations
 
+import base64
 import json
 import time
 from dataclasses import dataclass, field
@@ -32,7 +35,20 @@ from storage.mcap_io import JsonMcapWriter, read_all, rebuild, salvage, stamp
 
 _COLOURS = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16), (0.58, 0.4, 0.74)]
 _OBJ = {"type": "object"}
+_COMPRESSED_IMAGE = {  # Foxglove's JSON schema: the bytes as base64, so a JSON reader gets them back
+    "type": "object",
+    "properties": {
+        "timestamp": {
+            "type": "object",
+            "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}},
+        },
+        "frame_id": {"type": "string"},
+        "data": {"type": "string", "contentEncoding": "base64"},
+        "format": {"type": "string"},
+    },
+}
 SCHEMAS = {
+    keys.SCHEMA_COMPRESSED_IMAGE: _COMPRESSED_IMAGE,
     keys.SCHEMA_TAKEOVER: _OBJ,
     keys.SCHEMA_TAKEOVER_STEP: _OBJ,
     keys.SCHEMA_TAKEOVER_END: _OBJ,
@@ -101,6 +117,7 @@ class SegmentWriter:
             "tf": ch(keys.TOPIC_TF, keys.SCHEMA_FRAME_TRANSFORM),
             "field": ch(keys.TOPIC_FIELD, keys.SCHEMA_SCENE_UPDATE),
         }
+        self._cameras: dict[str, int] = {}  # camera name -> its channel, opened at its first view
         self.meta = dict(meta)
         self.steps = 0
         self._flush_seconds, self._fsync = flush_seconds, fsync
@@ -158,6 +175,22 @@ class SegmentWriter:
         self.steps += 1
         self._dirty = True
         self.maybe_flush()
+
+    def write_image(self, camera: str, jpeg: bytes, t: int) -> None:
+        """One camera view the operator saw: ``camera`` (front, wrist), JPEG bytes, the episode step ``t``
+        it shows (its ``frame_id``: ``step-<t>``)."""
+        if camera not in self._cameras:
+            topic = keys.TOPIC_CAMERA.format(name=camera)
+            self._cameras[camera] = self._mcap.channel(topic, keys.SCHEMA_COMPRESSED_IMAGE)
+        ns = time.time_ns()
+        payload = {
+            "timestamp": stamp(ns),
+            "frame_id": f"step-{int(t)}",
+            "data": base64.b64encode(jpeg).decode("ascii"),
+            "format": "jpeg",
+        }
+        self._mcap.add(self._cameras[camera], ns, payload)
+        self._dirty = True  # flushed with the steps (the control loop's flush_takeover), not here
 
     def maybe_flush(self) -> None:
         """Flushes unwritten steps older than ``flush_seconds``; call it periodically (the control loop does)."""
@@ -245,13 +278,15 @@ class SegmentStep:
 class Segment:
     """A read segment: ``meta`` (/takeover), ``steps`` (/takeover/step, typed when first read: a step
     without the fields every step has raises SegmentReadError then), ``end`` (/takeover/end, None while
-    open), ``recovered`` (salvaged from a file left open), ``fields`` (a foxglove.SceneUpdate per step)."""
+    open), ``recovered`` (salvaged from a file left open), ``fields`` (a foxglove.SceneUpdate per step),
+    ``images`` (per camera, the views the operator saw; ``Segment.jpeg`` decodes one)."""
 
     path: Path
     meta: dict
     end: dict | None = None
     recovered: bool = False
     fields: list[dict] = field(default_factory=list)
+    images: dict[str, list[dict]] = field(default_factory=dict)  # camera -> its foxglove.CompressedImage messages
     step_messages: list[dict] = field(default_factory=list, repr=False)  # the /takeover/step payloads
 
     @property
@@ -260,6 +295,11 @@ class Segment:
         None for a segment written before it was recorded."""
         req = self.meta.get("request")
         return req if isinstance(req, dict) else None
+
+    @staticmethod
+    def jpeg(message: dict) -> bytes:
+        """The JPEG bytes of one ``images`` message."""
+        return base64.b64decode(message["data"])
 
     @cached_property
     def steps(self) -> tuple[SegmentStep, ...]:
@@ -288,6 +328,8 @@ def _collect(path: Path, messages, recovered: bool) -> Segment:
             seg.end = doc
         elif channel.topic == keys.TOPIC_FIELD:
             seg.fields.append(doc)
+        elif channel.topic.startswith("/camera/") and channel.topic.endswith("/image/compressed"):
+            seg.images.setdefault(channel.topic.split("/")[2], []).append(doc)
     if not seg.meta:
         raise SegmentReadError(path, "no /takeover message: not a takeover segment")
     return seg

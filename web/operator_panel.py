@@ -24,13 +24,16 @@ from sim.env import Task
 from sim.registry import make_task
 from sim.spaces import TeleopLimits
 from web.actions import ConsoleActions
+from web.camera_views import CameraFolder
 from web.identity import Identity
 from web.panels import (
     TIMELINE_SERIES,
     FleetSnapshot,
+    empty_timeline,
     key_map_markdown,
     lineage_markdown,
     overview_markdown,
+    queue_head,
     queue_row,
     robot_markdown,
     timeline_data,
@@ -92,6 +95,8 @@ class OperatorPanel:
         self._dragging = False
         self._timeline_key: tuple = ()
         self._tasks: dict[str, Task] = {}  # task name -> the task, for its goal
+        self._following: tuple[int, float] | None = None  # (robot, when) "follow the queue" claimed, until handed back
+        self._frame_gripper: int | None = None  # a robot just claimed: frame its gripper once its scene is up
         self._build_gui()
         client.camera.position, client.camera.look_at = CAMERA_POSITION, CAMERA_LOOK_AT
 
@@ -99,13 +104,15 @@ class OperatorPanel:
     def _build_gui(self) -> None:
         gui = self.client.gui
         gui.add_markdown(f"Logged in as **{self.identity.name}** ({self.identity.role})")
+        self.follow_button = gui.add_button("Follow the queue (T)", icon=viser.Icon.PLAYER_TRACK_NEXT)
+        self.follow_status = gui.add_markdown("")
         tabs = gui.add_tab_group()
         with tabs.add_tab("Robot", viser.Icon.ROBOT):
             self.robot_select = gui.add_dropdown("Robot", options=("–",), initial_value="–")
             self.focus_button = gui.add_button("Look at the gripper (F)", icon=viser.Icon.FOCUS_CENTERED)
             self.status = gui.add_markdown("Waiting for the fleet…")
             self.plot = gui.add_uplot(
-                data=tuple(np.zeros(0) for _ in TIMELINE_SERIES),
+                data=empty_timeline(),
                 series=TIMELINE_SERIES,
                 title="Timeline: asking score and the paper's U (÷ threshold)",
                 aspect=2.0,
@@ -125,6 +132,8 @@ class OperatorPanel:
                     self.jog_buttons.append(button)
                 self.open_button = gui.add_button("Open gripper", disabled=True)
                 self.close_button = gui.add_button("Close gripper (G toggles)", disabled=True)
+            # below the takeover inputs: views that come and go must not move the buttons under the pointer
+            self.cameras = CameraFolder(gui, self.fleet, self._set)
             self.takeovers = (
                 TakeoverFolder(gui, self.board, self.actions, self._notify) if self.board is not None else None
             )
@@ -146,6 +155,8 @@ class OperatorPanel:
             command = gui.add_command(f"Jog {label}", hotkey=key)
             command.on_trigger(self._jog_callback(pos_axis, rot_axis, sign))
         self.focus_button.on_click(lambda _: self._focus())
+        self.follow_button.on_click(lambda _: self._follow())
+        gui.add_command("Follow the queue", hotkey="T").on_trigger(lambda _: self._follow())
         gui.add_command("Look at the gripper", hotkey="F").on_trigger(lambda _: self._focus())
         gui.add_command("Toggle gripper", hotkey="G").on_trigger(lambda _: self._toggle_gripper())
         gui.add_command("Claim the robot on view", hotkey="C").on_trigger(lambda _: self._claim(self.robot_id))
@@ -178,18 +189,34 @@ class OperatorPanel:
             self.client.camera.look_at = ee
             self.client.camera.position = ee + FOCUS_OFFSET
 
-    def _claim(self, robot_id: int | None) -> None:
-        if robot_id is None:
+    def _follow(self) -> None:
+        """Claims the robot the queue puts first and frames its gripper; says why not when the queue is empty,
+        every request in it is held by someone else, or this operator still holds another robot."""
+        requests = self.fleet.requests()
+        mine = [r.robot_id for r in requests if r.holder == self.identity.name]
+        rid, line = queue_head(requests, self.identity.name)
+        if rid is None or (mine and rid not in mine):
+            why = line if rid is None else f"You hold robot {mine[0]}: hand it back (R) first."
+            self._notify("Follow the queue", why, "yellow")
             return
+        if self._claim(rid):  # the robot this operator already holds, or the first free one
+            with self._lock:
+                self._following = (rid, time.monotonic())
+
+    def _claim(self, robot_id: int | None) -> bool:
+        if robot_id is None:
+            return False
         try:
             self.actions.claim(robot_id)
         except ServiceError as exc:
             self._refused(f"Claiming robot {robot_id}", exc)
-            return
+            return False
         self._select(robot_id)
         with self._lock:
             self._gripper = None
             self._claimed[robot_id] = time.monotonic()
+            self._frame_gripper = robot_id
+        return True
 
     def _release(self, robot_id: int | None) -> None:
         if robot_id is None:
@@ -257,6 +284,7 @@ class OperatorPanel:
         self._set(self.overview, "content", overview_markdown(snap, self.identity.name))
         self._set(self.lineages, "content", lineage_markdown(snap.lineages))
         self._queue(snap)
+        self._follow_state(snap)
         options = tuple(f"{rid} · {v.task}" for rid, v in sorted(snap.robots.items()))
         if self.robot_id is None and snap.robots:
             waiting = [r.robot_id for r in snap.queue if r.holder is None]
@@ -271,6 +299,33 @@ class OperatorPanel:
         self._robot(snap)
         if self.takeovers is not None:
             self.takeovers.show(self.robot_id)
+
+    def _follow_state(self, snap: FleetSnapshot) -> None:
+        """The line above the tabs: the robot followed while it is under this operator's hands, else what
+        the queue puts first. Once the followed robot is handed back (or its episode ended, or its lease
+        ran out), back to the fleet: the overview camera. A snapshot taken before the claim does not show
+        it yet, and does not end it."""
+        me = self.identity.name
+        with self._lock:
+            following = self._following
+        if following is not None:
+            rid, since = following
+            req = snap.request(rid)
+            if snap.now < since or (req is not None and req.holder == me and rid in snap.robots):
+                self._set(self.follow_status, "content", f"Following the queue: robot {rid} · R hands it back")
+                return
+            with self._lock:
+                self._following = None
+            self.client.camera.position, self.client.camera.look_at = CAMERA_POSITION, CAMERA_LOOK_AT
+            self._notify("Back to the fleet", f"Robot {rid} is handed back. T takes the next in the queue.")
+        # one short line whatever the queue holds: what is under the pointer below must not move
+        head, _ = queue_head(snap.queue, me)
+        if head is not None:
+            task = snap.robots[head].task if head in snap.robots else "?"
+            text = f"Next in the queue: robot {head} ({task}) · T takes it"
+        else:
+            text = "The queue is empty" if not snap.queue else "Every request in the queue is held by someone else"
+        self._set(self.follow_status, "content", text)
 
     def _set(self, handle, attr: str, value) -> None:
         """Assigns a handle's property only when it changed: only what changed is sent."""
@@ -370,6 +425,7 @@ class OperatorPanel:
         if key != self._timeline_key:
             self.plot.data = timeline_data(view)
             self._timeline_key = key
+        self.cameras.show(rid)
         self._scene(view, holding)
 
     def _scene(self, view, holding: bool) -> None:
@@ -378,6 +434,12 @@ class OperatorPanel:
             return
         scene = self.scene
         scene.update(view.frame, view.last_result)
+        with self._lock:
+            frame_now = self._frame_gripper == view.id and view.frame is not None
+            if frame_now:
+                self._frame_gripper = None
+        if frame_now:  # just claimed: the gripper with its field and modes, readable
+            self._focus()
         if not holding:
             scene.hide_target()
             self._drag = None

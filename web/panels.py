@@ -37,6 +37,7 @@ KEY_MAP = (
     ("N / M", "yaw + / −"),
     ("G", "gripper open ↔ close"),
     ("F", "look at the gripper"),
+    ("T", "follow the queue: take the robot it puts first"),
     ("C", "claim the robot on view"),
     ("R", "hand back"),
 )
@@ -88,12 +89,32 @@ def _num(x: float | None, digits: int = 3) -> str:
     return f"{x:.0f}" if abs(x) >= 10**digits else f"{x:.{digits}g}"
 
 
+def _cell(text: str, most: int = 90) -> str:
+    """Text for a markdown table cell: escaped, pipes kept out of the table's syntax, cut at ``most``."""
+    text = text if len(text) <= most else text[: most - 1] + "…"
+    return plain(text).replace("|", "\\|").replace("\n", " ")
+
+
+def why_waits(view: RobotView, req: AssistanceRequest | None) -> str:
+    """Why the robot is not working alone now: its open request's reason (the queue's words), its fault, or
+    that it is paused; empty while it works alone."""
+    if view.mode == FleetMode.FAULTED:
+        return f"fault: {view.fault or 'its worker stopped'}"
+    if req is not None:
+        return req.reason
+    if view.mode == FleetMode.PAUSED:
+        return "paused by an admin"
+    return ""
+
+
 def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
-    """Every robot: task, mode, the asking signal's score against its threshold (the request's while it
-    has one), the paper's U against its threshold, outcomes, policy."""
+    """Every robot at a glance: task, mode, how its episode goes (step of its horizon), why it waits, the
+    asking signal's score against its threshold (the request's while it has one), the paper's U against
+    its threshold, outcomes, policy."""
     lines = [
-        "| Robot | Task | Mode | Asking: score / threshold | Paper's U / threshold | Successes | Assists | Policy |",
-        "|---|---|---|---|---|---|---|---|",
+        "| Robot | Task | Mode | Episode | Why it waits | Asking: score / threshold | Paper's U / threshold "
+        "| Successes | Assists | Policy |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for rid, v in sorted(snapshot.robots.items()):
         name, score, threshold = asking_numbers(v)
@@ -103,12 +124,29 @@ def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
         mode = MODE_BADGES.get(v.mode, v.mode)
         if req is not None and req.holder:
             mode += f" ({'you' if req.holder == me else plain(req.holder)})"
+        episode = f"step {v.frame.clock} / {v.frame.horizon}" if v.frame is not None else "–"
         lines.append(
-            f"| {rid} | {v.task} | {mode} | {name}: {_num(score)} / {_num(threshold)}{flag} "
+            f"| {rid} | {v.task} | {mode} | {episode} | {_cell(why_waits(v, req))} "
+            f"| {name}: {_num(score)} / {_num(threshold)}{flag} "
             f"| {_num(u)} / {_num(v.slot.threshold)} "
             f"| {v.successes} / {v.episodes_done} | {v.events} ({v.assisted_steps} steps) | v{v.slot.version} |"
         )
     return "\n".join(lines)
+
+
+def queue_head(requests: list[AssistanceRequest] | tuple[AssistanceRequest, ...], me: str) -> tuple[int | None, str]:
+    """What "follow the queue" takes: the robot the queue puts first that this operator may claim (free, or
+    already theirs), and a line saying so; None and why when there is none (the queue sorts held requests
+    last, so a first request held by someone else means every request is held)."""
+    if not requests:
+        return None, "The queue is empty: no robot waits for help."
+    first = requests[0]
+    if first.holder is not None and first.holder != me:
+        return None, (
+            f"Robot {first.robot_id}, first in the queue, is held by {plain(first.holder)}"
+            + (f", and so are the other {len(requests) - 1}." if len(requests) > 1 else ".")
+        )
+    return first.robot_id, f"Robot {first.robot_id} is first in the queue: {first.reason}"
 
 
 def lineage_markdown(lineages: tuple[LineageSummary, ...]) -> str:
@@ -224,10 +262,22 @@ def key_map_markdown() -> str:
     return f"| Key | Action |\n|---|---|\n{rows}\n\n_{KEY_NOTE}_"
 
 
+def empty_timeline() -> tuple[np.ndarray, ...]:
+    """The timeline before a robot has points: two x values and gaps. Never empty arrays: viser 1.1.1's
+    uPlot keeps its x range relative to the first data's span, and the span of no data is infinite, so a
+    plot given empty data once draws nothing afterwards (the empty timeline of a robot viewed first while
+    it waits)."""
+    gap = np.full(2, np.nan)
+    return np.array([0.0, 1.0]), gap, gap, np.ones(2), gap, gap
+
+
 def timeline_data(view: RobotView) -> tuple[np.ndarray, ...]:
     """uPlot data: step, the asking signal's score / its threshold, the paper's U / its threshold, the
-    threshold (1), help requested (a marker at 1), control changed hands (a marker at 1). NaN is a gap."""
+    threshold (1), help requested (a marker at 1), control changed hands (a marker at 1). NaN is a gap;
+    ``empty_timeline`` before the first point."""
     points = view.timeline
+    if not points:
+        return empty_timeline()
     _, threshold = asking_threshold(view)
     t = np.array([p.t for p in points], dtype=np.float64)
     score = np.array([np.nan if p.score is None or not threshold else p.score / threshold for p in points])

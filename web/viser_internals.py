@@ -94,9 +94,12 @@ def close_client(server: viser.ViserServer, client_id: int, reason: str) -> None
 
 
 def hide_model_groups(model, groups: tuple[int, ...] = (0,)) -> None:
-    """Moves the geoms of ``groups`` (robosuite's collision geoms: 0) and every site to a group mjviser
-    hides, in place: call it on the browser's own copy of the model."""
+    """Moves the geoms of ``groups`` (robosuite's collision geoms: 0), the geoms of mocap bodies and every
+    site to a group mjviser hides, in place: call it on the browser's own copy of the model. The mocap
+    bodies are robosuite's end-effector target markers (``left_eef_target``, ``right_eef_target``: a
+    translucent 10 cm box), parked at z = -1 m, which no frame moves: drawn, a cube floats under the table."""
     model.geom_group[np.isin(model.geom_group, groups)] = HIDDEN_GROUP
+    model.geom_group[model.body_mocapid[model.geom_bodyid] >= 0] = HIDDEN_GROUP
     model.site_group[:] = HIDDEN_GROUP
 
 
@@ -112,3 +115,11 @@ def on_handshake(server: viser.ViserServer, callback, hangup) -> None:
 def quiet():
     """Swallows what viser prints to stdout (its start panel, its stop line) while in the block."""
     return contextlib.redirect_stdout(io.StringIO())
+
+
+def show_jpeg(handle: viser.GuiImageHandle, jpeg: bytes) -> None:
+    """Shows JPEG bytes as they are in a GUI image (a camera view, encoded once by the renderer): viser's
+    public ``image`` setter takes an array and encodes it again. Its props ``_format`` and ``_data`` are
+    what that setter assigns and what viser 1.1.1 sends to the browser."""
+    handle._format = "jpeg"
+    handle._data = jpeg

@@ -23,6 +23,14 @@ one request at a time), the queue's length. With operators claiming the head of 
 ``wait_scale`` + queue length x time per takeover / operators (the length counts A and covers the
 takeovers in progress). Lease expiries are not counted: a request whose lease ran out goes back with
 its opening time, so one that was ahead of A is ahead again.
+
+**Other orders** (``Settings.queue_order``, for comparing allocations; ``hitl bench operators``):
+``"cur"`` is Fleet-DAgger's CUR allocation (Hoque et al., 2022): constraint violations first, then
+uncertainty, then risk. A constraint violation is read as a stalled robot, one the watchdog asked for
+(its episode used its share of the horizon without success; a faulted robot does not ask, it waits
+for a reset); uncertainty is the urgency above; risk is left out, since nothing here estimates it.
+Ties go to the request opened first. CUR has no waiting term, so a request can starve behind fresher,
+more urgent ones. ``"fcfs"`` is first come, first served: the request opened first.
 """
 
 from __future__ import annotations
@@ -38,6 +46,7 @@ from server.errors import ServiceError
 from sim.frame import RobotFrame
 
 WAIT_SCALE_S = 10.0  # seconds of waiting worth the whole urgency range
+QUEUE_ORDERS = ("priority", "cur", "fcfs")  # ours (the default), Fleet-DAgger's CUR, first come first served
 
 
 def urgency(score: float, threshold: float) -> float:
@@ -117,9 +126,23 @@ class AssistanceRequest:
         return urgency(self.uncertainty, self.threshold) + (now - self.created) / wait_scale
 
 
+def _sort_key(order: str, now: float):
+    """The key that puts the request to claim next first, in ``order`` (see the module)."""
+    if order == "priority":
+        return lambda r: (-r.priority(now), r.created)
+    if order == "cur":
+        return lambda r: (r.signal != WATCHDOG, -urgency(r.uncertainty, r.threshold), r.created)
+    if order == "fcfs":
+        return lambda r: r.created
+    raise ValueError(f"unknown queue order {order!r}: one of {', '.join(QUEUE_ORDERS)}")
+
+
 class AssistanceQueue:
-    def __init__(self, lease_seconds: float) -> None:
+    def __init__(self, lease_seconds: float, order: str = "priority") -> None:
+        """order: how ``pending`` ranks unclaimed requests, one of ``QUEUE_ORDERS`` (see the module)."""
+        _sort_key(order, 0.0)  # refuses an unknown order here, not at the first claim
         self.lease_seconds = lease_seconds
+        self.order = order
         self._lock = threading.Lock()
         self._ids = itertools.count(1)
         self._by_robot: dict[int, AssistanceRequest] = {}
@@ -153,10 +176,13 @@ class AssistanceQueue:
             return req
 
     def pending(self, now: float | None = None) -> list[AssistanceRequest]:
-        """Open requests, unclaimed first, each part by priority at ``now`` (default: ``time.monotonic()``)."""
+        """Open requests, unclaimed first, each part in the queue's order at ``now`` (default:
+        ``time.monotonic()``)."""
         now = time.monotonic() if now is None else now
+        key = _sort_key(self.order, now)
         with self._lock:
-            return sorted(self._by_robot.values(), key=lambda r: (r.holder is not None, -r.priority(now)))
+            requests = sorted(self._by_robot.values(), key=key)
+        return sorted(requests, key=lambda r: r.holder is not None)  # stable: each part keeps the order
 
     def get(self, robot_id: int) -> AssistanceRequest | None:
         with self._lock:

@@ -9,7 +9,9 @@
 - ``Recorder`` (``server.fleet.recording``): the rows and files written, with its per-robot state;
 - ``PolicySwap`` (``server.fleet.policy_swap``): which loaded policy version each lineage serves;
 - ``AssistanceQueue`` and ``OperatorClock`` (``server.fleet.metrics``): requests, leases and the
-  operators' time, reported by ``metrics``.
+  operators' time, reported by ``metrics``;
+- ``CameraFeed`` (``server.cameras``): the camera views of the robots someone watches, each written into
+  the robot's open takeover segment.
 
 It starts and stops two threads (the control loop and the policy registry's watcher). One
 re-entrant lock (``Fleet.lock``) guards the robots: a tick holds it, and so does each action that
@@ -25,6 +27,7 @@ import torch
 from sqlalchemy.orm import sessionmaker
 
 from server import registry
+from server.cameras import CameraFeed, CameraImages, CameraView
 from server.fleet.assistance import AssistanceQueue, AssistanceRequest
 from server.fleet.commands import CommandMailbox
 from server.fleet.lifecycle import Lifecycle
@@ -47,7 +50,7 @@ class Fleet:
     def __init__(self, settings: Settings, sessions: sessionmaker, workers: WorkerFactory | None = None) -> None:
         self.settings = settings
         self.sessions = sessions
-        self.queue = AssistanceQueue(settings.lease_seconds)
+        self.queue = AssistanceQueue(settings.lease_seconds, settings.queue_order)
         self.recorder = Recorder(
             sessions,
             settings.data_dir,
@@ -64,6 +67,14 @@ class Fleet:
         self.lifecycle = Lifecycle(self.recorder, self.queue, self.policies, self.worker_factory, self.operator_clock)
         self.loop = ControlLoop(settings, self.robots, self.lock, self.queue, self.recorder, self.lifecycle)
         self.operators = OperatorActions(self.robots, self.lock, self.queue, self.lifecycle, self.operator_clock)
+        self.cameras = CameraFeed(
+            self._camera_frame,
+            self._record_images,
+            settings.camera_hz,
+            (settings.camera_width, settings.camera_height),
+            enabled=settings.cameras,
+            gl=settings.camera_gl,
+        )
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._watcher: threading.Thread | None = None
@@ -108,6 +119,7 @@ class Fleet:
     def stop(self) -> None:
         """Finishes the current tick, closes open takeovers and episodes, stops the workers."""
         self._stop.set()
+        self.cameras.close()
         if self._thread is not None:
             self._thread.join(timeout=30)
         if self._watcher is not None:
@@ -148,6 +160,22 @@ class Fleet:
 
     def views(self) -> list[RobotView]:
         return self.operators.views()
+
+    def camera_view(self, robot_id: int) -> CameraView:
+        """The robot's latest camera views (``server.cameras``); asking marks it watched. 404 for an unknown robot."""
+        self.operators.view(robot_id)
+        return self.cameras.view(robot_id)
+
+    def _camera_frame(self, robot_id: int):
+        view = self.operators.view(robot_id)
+        return view.task, view.frame
+
+    def _record_images(self, images: CameraImages) -> None:
+        """Views rendered while the robot is under teleop go into its open takeover segment."""
+        with self.lock:
+            robot = self.robots.get(images.robot_id)
+            if robot is not None:
+                self.recorder.takeover_images(robot, images)
 
     def requests(self) -> list[AssistanceRequest]:
         return self.operators.requests()

@@ -298,6 +298,13 @@ class Recorder:
             field=field,
         )
 
+    def takeover_images(self, robot: Robot, images) -> None:
+        """The camera views the operator saw (``server.cameras.CameraImages``), if a takeover is open."""
+        writer = self._of(robot).takeover
+        if writer is not None:
+            for camera, jpeg in images.images.items():
+                writer.write_image(camera, jpeg, images.t)
+
     def close_takeover(self, robot: Robot, ended_by: str) -> None:
         """Ends the robot's takeover, if one is open; ended_by: one of ``db.SEGMENT_ENDS``."""
         rec = self._of(robot)

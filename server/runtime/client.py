@@ -35,6 +35,7 @@ from pathlib import Path
 from sqlalchemy.orm import sessionmaker
 
 from server import lease, registry
+from server.cameras import CameraView
 from server.errors import ServiceError
 from server.finetune.scheduler import ScheduleStatus
 from server.fleet.assistance import AssistanceRequest
@@ -254,6 +255,11 @@ class RemoteFleet:
         if reply.error is not None:
             raise ServiceError(*reply.error)
         return reply.value
+
+    def camera_view(self, robot_id: int) -> CameraView:
+        """From the runtime, which renders them (``server.cameras``): a round trip per call, bytes only when a
+        robot is watched."""
+        return self._call("camera_view", robot_id)
 
     def claim(self, robot_id: int, operator: str) -> AssistanceRequest:
         self.view(robot_id)  # 404 before a lease for a robot that does not exist

@@ -28,7 +28,18 @@ from server.fleet.robot import RobotView
 # The FleetPort members an API process calls on the runtime; those that change a robot's mode answer
 # with its view as the runtime shows it after the call (a heartbeat or a command changes no mode).
 CALLS = frozenset(
-    {"claim", "heartbeat", "command", "release", "pause", "resume", "reset", "register_policy", "activate_policy"}
+    {
+        "claim",
+        "heartbeat",
+        "command",
+        "release",
+        "pause",
+        "resume",
+        "reset",
+        "register_policy",
+        "activate_policy",
+        "camera_view",
+    }
 )
 ROBOT_CALLS = frozenset({"claim", "release", "pause", "resume", "reset"})
 Channel = Literal["calls", "snapshots"]

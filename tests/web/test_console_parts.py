@@ -125,6 +125,13 @@ def test_the_timeline_marks_requests_and_changes_of_hands():
     assert list(np.flatnonzero(~np.isnan(handed))) == [4, 6]
 
 
+def test_a_robot_without_points_has_a_timeline_with_a_span_not_empty_arrays():
+    """viser's uPlot takes its x range from the first data it gets: empty arrays leave it drawing nothing."""
+    t, *series = timeline_data(_View([]))
+    assert len(t) == 2 and t[1] > t[0]
+    assert all(len(s) == 2 for s in series) and np.isnan(series[0]).all()
+
+
 def test_the_goal_and_the_key_map_read_as_an_operator_needs_them():
     # each task says its own goal from the frame's scene (its privileged state as JSON), no simulation needed
     drawer, cups, hook = make_task("open-drawer"), make_task("cup-stack"), make_task("lift-hook")
@@ -211,14 +218,55 @@ def test_the_panel_shows_the_request_a_robot_waits_on_and_the_papers_u_apart():
     robot.u_history.append(0.062)
     robot.publish()
     header, _, row = overview_markdown(FleetSnapshot({0: robot.view}, ()), "me").splitlines()
-    assert "Asking: score / threshold | Paper's U / threshold" in header
-    assert "| spread: 0.3 / 0.5 | 0.062 / 2 |" in row
+    assert "| Episode | Why it waits | Asking: score / threshold | Paper's U / threshold" in header
+    assert "| autonomous | – |  | spread: 0.3 / 0.5 | 0.062 / 2 |" in row  # no frame yet, works alone
     queue = AssistanceQueue(10.0)
     robot.ask = queue.ask(0, AskRecord("spread", 2.4, 0.5, "spread: stall 2.4× its threshold", 7, 0.062)).ask
     robot.set_mode("waiting")
     robot.publish()
     snap = FleetSnapshot({0: robot.view}, tuple(queue.pending()))
-    assert "| spread: 2.4 / 0.5 ⚠ | 0.062 / 2 |" in overview_markdown(snap, "me").splitlines()[2]
+    row = overview_markdown(snap, "me").splitlines()[2]
+    assert "| spread: stall 2.4× its threshold | spread: 2.4 / 0.5 ⚠ | 0.062 / 2 |" in row  # why, in the queue's words
     text = robot_markdown(robot.view, snap.request(0), snap.now, "me", make_task("lift-cube"))
     assert "| **spread** (asked at step 7) | 2.4 | 0.5 |" in text
     assert "**Asked:** spread: stall 2.4× its threshold" in text
+
+
+def test_the_fleet_table_keeps_a_reason_inside_its_cell_and_says_where_each_episode_is():
+    """A reason with a pipe, a newline or markup stays one cell of text; a faulted robot says why; the episode
+    column reads the frame's step of its horizon."""
+    from types import SimpleNamespace
+
+    from server.fleet.assistance import AssistanceRequest
+    from web.panels import _cell, why_waits
+
+    assert _cell("a | b\nc <b>") == "a \\| b c &lt;b&gt;"
+    assert _cell("x" * 200).endswith("…") and len(_cell("x" * 200)) == 90
+    view = SimpleNamespace(mode="faulted", fault="worker exited with code -9")
+    assert why_waits(view, None) == "fault: worker exited with code -9"
+    req = AssistanceRequest(1, 0, 1.0, 0.5, "watchdog: 120 of 150 steps without success")
+    assert why_waits(SimpleNamespace(mode="waiting", fault=None), req) == req.reason
+    assert why_waits(SimpleNamespace(mode="paused", fault=None), None) == "paused by an admin"
+    assert why_waits(SimpleNamespace(mode="autonomous", fault=None), None) == ""
+
+
+def test_the_scene_draws_no_stray_objects_only_the_tasks_visual_geoms():
+    """robosuite's end-effector target markers (mocap bodies parked at z = -1 m, under the table) and its
+    collision geoms are hidden; the objects' visual geoms stay."""
+    import mujoco
+
+    from web.viser_internals import HIDDEN_GROUP, hide_model_groups
+
+    task = make_task("lift-cube")
+    try:
+        model = task.mj_model()
+        hide_model_groups(model)
+        shown = [
+            mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, model.geom_bodyid[g])
+            for g in range(model.ngeom)
+            if model.geom_group[g] != HIDDEN_GROUP
+        ]
+    finally:
+        task.close()
+    assert not [b for b in shown if "eef_target" in b]
+    assert "cube_main" in shown and "table" in shown

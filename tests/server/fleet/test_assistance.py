@@ -110,3 +110,44 @@ def test_no_robot_starves_one_operator_serving_three_1100x_robots_and_a_1_3x_one
     longest = max([*q.waits, *still_waiting])
     assert longest <= WAIT_SCALE_S + n * takeover
     assert served[3] >= 20 and sum(served) == len(q.waits) == 120
+
+
+def _watchdog(q: AssistanceQueue, robot_id: int, now: float) -> None:
+    from policy.controller import WATCHDOG
+    from server.fleet.assistance import AskRecord
+
+    q.ask(robot_id, AskRecord(WATCHDOG, 1.0, 1.0, "watchdog: 160 of 200 steps without success"), now=now)
+
+
+def test_cur_puts_stalled_robots_first_then_urgency_and_lets_an_old_request_wait():
+    """Fleet-DAgger's CUR: constraint violations (the watchdog's stalled robots) first, then uncertainty;
+    no waiting term, so a low-urgency request that waited 100 wait scales still goes last."""
+    q = AssistanceQueue(lease_seconds=30, order="cur")
+    q.open(1, DRAWER_SCORE, DRAWER, "spread", now=0.0)
+    q.open(2, LIFT_SCORE, LIFT, "spread", now=50.0)
+    _watchdog(q, 3, now=90.0)
+    q.open(4, 1.5 * LIFT, LIFT, "spread", now=95.0)
+    assert _order(q, now=100 * WAIT_SCALE_S) == [3, 2, 4, 1]
+    q.claim(3, "op", now=100.0)
+    assert _order(q, now=100.0) == [2, 4, 1, 3]  # claimed requests still last
+
+
+def test_fcfs_serves_the_request_opened_first_whatever_the_scores():
+    q = AssistanceQueue(lease_seconds=30, order="fcfs")
+    q.open(1, 1.5 * LIFT, LIFT, "spread", now=0.0)
+    _watchdog(q, 2, now=1.0)
+    q.open(3, 1e12 * LIFT, LIFT, "spread", now=2.0)
+    assert _order(q, now=2.0) == [1, 2, 3]
+    q.claim(1, "op", now=3.0)
+    assert _order(q, now=3.0) == [2, 3, 1]
+
+
+def test_an_unknown_order_is_refused_when_the_queue_is_made_and_the_settings_name_every_order():
+    import typing
+
+    from server.fleet.assistance import QUEUE_ORDERS
+    from server.settings import Settings
+
+    with pytest.raises(ValueError, match="unknown queue order 'lifo'"):
+        AssistanceQueue(lease_seconds=30, order="lifo")
+    assert typing.get_args(Settings.model_fields["queue_order"].annotation) == QUEUE_ORDERS

@@ -573,3 +573,34 @@ def test_the_watchdogs_and_a_requested_help_show_as_the_queue_ranks_them(tmp_pat
     assert (drill.signal, drill.score, drill.threshold, drill.reason) == (None, 1.0, 1.0, "drill")
     assert fleet.queue.get(0).ask == fleet.view(0).ask
     fleet.stop()
+
+
+def test_camera_views_shown_during_a_takeover_are_recorded_in_its_segment(tmp_path):
+    """The views the feed renders while a robot is under teleop go into its open takeover file; outside a
+    takeover there is no file to write them to, and nothing is written."""
+    import io
+    import time as clock
+
+    from PIL import Image
+
+    from server.cameras import CameraImages
+    from storage.segments import read_segment
+
+    fleet, _ = _fleet(tmp_path)
+    jpeg = io.BytesIO()
+    Image.fromarray(np.zeros((12, 16, 3), np.uint8)).save(jpeg, format="JPEG")
+    views = lambda t: CameraImages(0, t, t, {"front": jpeg.getvalue(), "wrist": jpeg.getvalue()}, 16, 12, clock.time())  # noqa: E731
+    fleet.tick()
+    fleet.cameras.on_images(views(0))  # waiting, no takeover: nowhere to write
+    fleet.claim(0, "op")
+    fleet.command(0, "op", UP)
+    fleet.tick()
+    fleet.cameras.on_images(views(1))
+    fleet.cameras.on_images(views(2))
+    fleet.release(0, "op")
+    fleet.tick()
+    [segment] = _segments(fleet)
+    seg = read_segment(fleet.settings.data_dir / segment.path)
+    assert [m["frame_id"] for m in seg.images["front"]] == ["step-1", "step-2"] and len(seg.images["wrist"]) == 2
+    assert seg.jpeg(seg.images["wrist"][0]) == jpeg.getvalue()
+    fleet.stop()
