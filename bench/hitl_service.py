@@ -18,7 +18,6 @@ merely close:
 
 from __future__ import annotations
 
-import subprocess
 import sys
 import tempfile
 import threading
@@ -27,7 +26,7 @@ from pathlib import Path
 
 from sqlalchemy import select
 
-from bench.loop import launch_service, wait_ready
+from bench.loop import launch_service, stop_service, wait_ready
 from client.operator_bot import OperatorBot
 from server.db import FINISHED, EpisodeRecord
 from server.settings import Settings
@@ -98,11 +97,7 @@ def run_service(
         stop.set()
         if thread.is_alive():
             thread.join(timeout=30)  # the bot stops before the service it talks to
-        proc.terminate()
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_service(proc)
         bot.close()
     return done
 

@@ -60,6 +60,16 @@ def wait_ready(url: str, proc: subprocess.Popen, timeout: float) -> None:
     raise RuntimeError(f"the service was not ready after {timeout:.0f} s")
 
 
+def stop_service(proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    """Stops a service ``launch_service`` started: SIGTERM (it closes open takeovers and episodes), then
+    SIGKILL if it has not exited within ``timeout`` seconds."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
 def launch_service(config: Path, settings: Settings, env: dict[str, str] | None = None):
     """Prepares ``settings``' database and an operator token for the bot, then starts
     ``hitl serve --config config`` on a free 127.0.0.1 port with ``env`` on top of this process's
@@ -111,11 +121,7 @@ def run_loop(
         queue = queue_snapshot(url, token)
     finally:
         stop.set()
-        proc.terminate()
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_service(proc)
         if operator is not None:
             operator.close()
     return loop_report(sessions, settings, seconds, mode, operator, since, queue)

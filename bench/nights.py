@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import subprocess
 import threading
 import time
 from collections import defaultdict
@@ -42,7 +41,7 @@ import httpx
 from sqlalchemy import or_, select
 from tqdm import tqdm
 
-from bench.loop import launch_service, wait_ready
+from bench.loop import launch_service, stop_service, wait_ready
 from client.operator_bot import OperatorBot
 from server.auth import create_token
 from server.db import FINISHED, EpisodeRecord, FinetuneJob, PolicyVersion, SegmentRecord
@@ -137,11 +136,7 @@ class Service:
 
     def stop(self) -> None:
         self.api.close()
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=120)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
+        stop_service(self.proc, timeout=120)
 
 
 def run_nights(plan: NightsPlan, on_progress: Callable[[dict], None] | None = None) -> dict:

@@ -33,7 +33,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import subprocess
 import tempfile
 import threading
 import time
@@ -47,7 +46,7 @@ import numpy as np
 from sqlalchemy import select
 from tqdm import tqdm
 
-from bench.loop import launch_service, wait_ready
+from bench.loop import launch_service, stop_service, wait_ready
 from client.operator_bot import HumanPace, OperatorBot
 from server.db import FINISHED, EpisodeRecord, SegmentRecord
 from server.fleet.assistance import QUEUE_ORDERS
@@ -297,11 +296,7 @@ def run_size(plan: OperatorsPlan, size: int, data_dir: Path, progress: bool = Tr
         thread.join(timeout=60)
     finally:
         stop.set()
-        proc.terminate()
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_service(proc)
         bot.close()
     with sessions() as s:
         started_in = select(EpisodeRecord).where(EpisodeRecord.started_at >= since)
