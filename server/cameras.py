@@ -6,9 +6,9 @@ process of their own (``server.camera_worker``), from the joint positions the ro
 ``WATCH_TTL_S`` seconds, at ``hz`` (2 by default) and ``width`` x ``height`` (160 x 120), each of its new
 frames at most once. Nothing starts until the first robot is watched: a fleet nobody watches pays nothing.
 
-**Rate and size.** Rendering is software OpenGL on the CPU that steps the fleet (OSMesa: about 20-40 ms
-per 160 x 120 view on this project's 2-core machine); two views at 2 Hz are about 10% of a core per
-watched robot, and the process runs at a lower CPU priority than the fleet. The 3D view stays the live
+**Rate and size.** Rendering is software OpenGL on the CPU that steps the fleet (OSMesa), so the views
+are small and slow (two views per watched robot, 2 Hz) and the process runs at a lower CPU priority than
+the fleet; what they cost the fleet is ``hitl bench console``'s to measure. The 3D view stays the live
 one (every tick); the camera views show what the robot's cameras see, as an operator of a real robot
 works from them.
 
