@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
 .PHONY: install osmesa demo test lint docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
-	resume-docs nights-docs nights-lift-docs operators-docs asking-dev-docs choice-dev-docs \
+	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-before-docs asking-dev-docs choice-dev-docs \
 	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs lift-variants-docs clean
 
 $(BIN)/python:
@@ -270,6 +270,27 @@ operators-docs: install
 		--out docs/results/service/operators.json --figure docs/figures/operators.png --quiet > /dev/null
 	for o in cur fcfs; do $(BIN)/hitl bench operators --sizes 10 --control-hz 5 --ticks 1500 --order $$o \
 		--data-dir var/bench-operators --out docs/results/service/operators-$$o.json --quiet > /dev/null || exit 1; done
+	$(MAKE) operators-figure
+
+# the figure, today's sweep beside the one before (operators-before-docs) where it has been run
+operators-figure: install
+	$(BIN)/hitl bench operators --from docs/results/service/operators.json --label "this release" --figure docs/figures/operators.png \
+		$$(test -f docs/results/service/operators-before.json && echo --compare before=docs/results/service/operators-before.json) > /dev/null
+
+# docs/benchmarks/service.md, "Robots per operator", before: the same sweep on the policies and the asking signal
+# that had landed before the oracle, the steerable policies and choice-stall (commit $(OPERATORS_BEFORE): spread-stall
+# and that commit's bundles), served by that commit's service with this benchmark added to it
+# (bench/before/operators-$(OPERATORS_BEFORE).patch: the benchmark, the bot's pace and the queue's orders); needs the
+# repository's history (about 25 min)
+OPERATORS_BEFORE := c1db223
+operators-before-docs: install
+	rm -rf var/operators-before && git worktree prune
+	git worktree add --detach var/operators-before $(OPERATORS_BEFORE)
+	git -C var/operators-before apply $(CURDIR)/bench/before/operators-$(OPERATORS_BEFORE).patch
+	(cd var/operators-before && $(abspath $(BIN))/python -m hitl.cli bench operators --sizes 7 10 15 20 --control-hz 5 \
+		--ticks 1500 --data-dir ../bench-operators-before --quiet) > docs/results/service/operators-before.json
+	git worktree remove --force var/operators-before
+	$(MAKE) operators-figure
 
 # docs/benchmarks/nights.md, "Why lift-cube robots asked": the bundled lift policy on lift-cube with the fleet's
 # asking (spread-stall, continuous, cooldown 10) on development seeds, the watchdog at half and at 80% of the
@@ -330,10 +351,14 @@ finetune-load-docs: install
 	$(BIN)/hitl bench finetune-load --robots 16 --no-idle-priority --json --quiet > docs/results/service/finetune-load-16-nice.json
 
 # The console's pictures (README, docs/console.md) and its cost (docs/benchmarks/console.md): 4 protocol clients,
-# then 4 Chromium browsers (~25 min). The benchmark exits 1 when a goal is not met; its JSON says which, and is kept.
+# 2 with and without camera views, then 4 Chromium browsers (~30 min). The benchmark exits 1 when a goal is not
+# met; its JSON says which, and is kept.
 console-docs: install
 	$(BIN)/hitl docs screenshots --out docs/figures
 	$(BIN)/hitl bench console --clients wire --out docs/results/console/wire.json --quiet || true
+	$(BIN)/hitl bench console --clients wire --browsers 2 --out docs/results/console/wire-2.json --quiet || true
+	$(BIN)/hitl bench console --clients wire --browsers 2 --no-cameras --out docs/results/console/wire-2-no-cameras.json \
+		--quiet || true
 	$(BIN)/hitl bench console --out docs/results/console/chromium.json --quiet || true
 
 # docs/benchmarks/finetune.md, the world-frame lift policy (policies/lift-cube, bundled): fine-tuning with the

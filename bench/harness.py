@@ -140,6 +140,9 @@ class Window:
         self.pids = {"server_process": os.getpid()} | ({"client_process": client_pid} if client_pid else {})
         self.pids |= {f"api_process_{i}": pid for i, pid in enumerate(api_pids)}
         self.pids |= worker_pids(fleet.robots.values())
+        renderer = getattr(getattr(fleet, "cameras", None), "process", None)  # the camera views' renderer, if running
+        if renderer is not None and renderer.poll() is None:
+            self.pids["camera_renderer"] = renderer.pid
 
     def start(self) -> None:
         f = self.fleet
@@ -185,12 +188,14 @@ class Window:
         out = {"machine_cores": os.cpu_count(), "machine_busy": used.pop("machine", None)}
         out["server_process"] = used.pop("server_process", None)
         out["client_process"] = used.pop("client_process", None)
+        out["camera_renderer"] = used.pop("camera_renderer", None)
         api = [used.pop(k) for k in sorted(used) if k.startswith("api_process_")]
         if api:
             out["api_processes"] = sum(api)
         out["robot_workers"] = sum(used.values())
         if out["machine_busy"] is not None:
-            ours = out["robot_workers"] + (out["server_process"] or 0) + (out["client_process"] or 0) + sum(api)
+            ours = out["robot_workers"] + sum(api)
+            ours += sum(out[k] or 0 for k in ("server_process", "client_process", "camera_renderer"))
             out["other_processes"] = max(0.0, out["machine_busy"] - ours)
         return out
 

@@ -33,6 +33,7 @@ def _cmd_bench_console(args: argparse.Namespace) -> int:
         nice=args.nice,
         paint=not args.no_paint,
         clients=args.clients,
+        cameras=not args.no_cameras,
         chromium=args.chromium,
         progress=not args.quiet,
     )
@@ -70,6 +71,9 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         choices=["chromium", "wire"],
         default="chromium",
         help="chromium: real browsers on this machine; wire: viser protocol clients, no browser (the service's cost)",
+    )
+    q.add_argument(
+        "--no-cameras", action="store_true", help="no camera views (the viewed robots' front and wrist cameras)"
     )
     q.add_argument("--chromium", default="/usr/bin/chromium")
     q.add_argument(

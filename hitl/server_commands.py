@@ -210,9 +210,12 @@ def _cmd_bench_operators(args: argparse.Namespace) -> int:
         if not sep:
             raise ValueError(f"--compare takes LABEL=FILE, got {item!r}")
         compare.append((label, json.loads(Path(path).read_text())))
-    result = run_operators(plan, args.data_dir, not args.quiet)
+    if args.from_ is not None:  # an earlier run's report, drawn again (with --compare) and not rerun
+        result = json.loads(args.from_.read_text())
+    else:
+        result = run_operators(plan, args.data_dir, not args.quiet)
     text = json.dumps(result, indent=None if args.json else 2)
-    if args.out is not None:
+    if args.out is not None and args.from_ is None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
     if args.figure is not None:
@@ -402,7 +405,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         "operators",
         help="robots per operator: fleets of each size served by one simulated operator, through the service",
     )
-    q.add_argument("--sizes", type=int, nargs="+", default=[5, 10, 15, 20], help="fleet sizes, each a fresh service")
+    q.add_argument("--sizes", type=int, nargs="+", default=[7, 10, 15, 20], help="fleet sizes, each a fresh service")
     q.add_argument(
         "--mix", nargs="+", metavar="TASK=SHARE", help="default lift-cube=0.7 and 0.1 of hammer, cup, drawer"
     )
@@ -419,6 +422,9 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--figure", type=Path, default=None, help="success and queue wait against the fleet's size")
     q.add_argument("--label", default="today", help="this run's label in the figure")
     q.add_argument("--compare", nargs="+", metavar="LABEL=FILE", help="earlier reports drawn beside it")
+    q.add_argument(
+        "--from", dest="from_", type=Path, default=None, help="draw this earlier report (--figure) instead of running"
+    )
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_operators)

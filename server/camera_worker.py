@@ -7,8 +7,9 @@ takes this process down, not the fleet. It keeps one ``sim.cameras.CameraRig`` p
 with PyOpenGL's OSMesa, freeing one context while another renders leaves the other drawing nothing.
 
 Protocol on stdin / stdout: length-prefixed (4 bytes, big-endian) msgpack messages. First it writes
-``{"ready": true, "gl": "<backend>"}``. Each request ``{"task", "qpos" (float64 bytes), "width",
-"height", "quality"}`` is answered with ``{"images": {camera: JPEG bytes}}`` or ``{"error": "..."}``.
+``{"ready": true, "gl": "<backend>"}``. Each request ``{"task", "qpos" (float64 bytes), "placed" (model
+body -> position and quaternion xyzw, 7 numbers: ``sim.frame.RobotFrame.placed``), "width", "height",
+"quality"}`` is answered with ``{"images": {camera: JPEG bytes}}`` or ``{"error": "..."}``.
 It exits at end of input.
 """
 
@@ -81,7 +82,8 @@ def main() -> int:
                     rigs[key] = CameraRig(task.mj_model(), key[1], key[2])
                 finally:
                     task.close()
-            images = rigs[key].render(np.frombuffer(job["qpos"], dtype=np.float64))
+            placed = {name: (np.asarray(p[:3]), np.asarray(p[3:])) for name, p in (job.get("placed") or {}).items()}
+            images = rigs[key].render(np.frombuffer(job["qpos"], dtype=np.float64), placed)
             out = {}
             for name, rgb in images.items():
                 buf = io.BytesIO()

@@ -263,6 +263,7 @@ class CameraFeed:
         job = {
             "task": task,
             "qpos": np.asarray(frame.qpos, dtype=np.float64).tobytes(),
+            "placed": {name: [*map(float, pos), *map(float, quat)] for name, (pos, quat) in frame.placed.items()},
             "width": self.size[0],
             "height": self.size[1],
             "quality": self.quality,

@@ -2,7 +2,7 @@
 
 An operator of a real robot works from its camera feeds; the console shows the viewed robot's front and
 wrist cameras (``server.cameras``). A ``CameraRig`` holds its own copy of a task's model and data and
-renders from a frame's ``qpos`` alone (``sim.frame.RobotFrame``): kinematics, no physics step, so the
+renders from a frame's ``qpos`` and placed bodies (``sim.frame.pose_model``): kinematics, no physics step, so the
 robot's own simulation is never touched and any process holding the frames can render them.
 
 MuJoCo needs an OpenGL context: on a machine without a display, OSMesa (``MUJOCO_GL=osmesa``, package
@@ -16,13 +16,15 @@ import copy
 
 import numpy as np
 
+from sim.frame import pose_model
+
 CAMERAS = {"front": "agentview", "wrist": "robot0_eye_in_hand"}  # our name -> robosuite's camera
 DEFAULT_SIZE = (160, 120)  # width, height
 VISUAL_GROUP = 1  # robosuite puts visual geoms in group 1, collision geoms in 0, target markers in 2
 
 
 class CameraRig:
-    """One task's cameras at one size. ``render(qpos)`` -> our camera name -> (H, W, 3) uint8 RGB."""
+    """One task's cameras at one size. ``render(qpos, placed)`` -> our camera name -> (H, W, 3) uint8 RGB."""
 
     def __init__(self, model, width: int = DEFAULT_SIZE[0], height: int = DEFAULT_SIZE[1]) -> None:
         import mujoco
@@ -41,13 +43,10 @@ class CameraRig:
         self.option.geomgroup[VISUAL_GROUP] = 1  # robosuite's visual geoms: not its collision geoms, not its markers
         self.renderer = mujoco.Renderer(self.model, height, width)
 
-    def render(self, qpos: np.ndarray) -> dict[str, np.ndarray]:
+    def render(self, qpos: np.ndarray, placed: dict | None = None) -> dict[str, np.ndarray]:
+        """The views of the state a frame shows: its ``qpos`` and ``placed`` bodies (``sim.frame.pose_model``)."""
         mujoco = self._mujoco
-        qpos = np.asarray(qpos, dtype=np.float64)
-        if qpos.shape != (self.model.nq,):
-            raise ValueError(f"qpos has shape {qpos.shape}, the model {self.model.nq} joint positions")
-        self.data.qpos[:] = qpos
-        mujoco.mj_kinematics(self.model, self.data)
+        pose_model(self.model, self.data, qpos, placed or {})
         mujoco.mj_camlight(self.model, self.data)
         out = {}
         for name, cam in CAMERAS.items():

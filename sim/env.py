@@ -319,8 +319,14 @@ class Task(ABC):
         return self.sim.data._data
 
     def joint_positions(self) -> np.ndarray:
-        """(nq,) the simulation's joint positions: with the task's model, they pose every body."""
+        """(nq,) the simulation's joint positions: with the task's model and ``placed_poses``, they pose every
+        body."""
         return np.array(self.sim.data.qpos, dtype=np.float64)
+
+    def placed_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Model body -> (position, quaternion xyzw) of each body that ``place`` moves by its position in the
+        model, not by a joint (a child of the world): ``joint_positions`` does not pose it. None by default."""
+        return {}
 
     def gripper_opening(self) -> float:
         """Finger gap in metres (0.08 fully open)."""

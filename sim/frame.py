@@ -26,8 +26,10 @@ class RobotFrame:
     sees of the scene's goal (plain JSON values); t: steps since the reset; clock: those of them that
     count against the horizon (holds do not); horizon: the clock's limit (the task's); success / done:
     the task's outcome after this step;
-    info: the task's episode details, set once ``done``; qpos: (nq,) the simulation's joint positions,
-    enough for a viewer holding the task's model to pose every body (the console's scene).
+    info: the task's episode details, set once ``done``; qpos: (nq,) the simulation's joint positions
+    and placed: model body -> (position, quaternion xyzw) of the bodies the task places without a joint
+    (``Task.placed_poses``), together enough for a viewer holding the task's model to pose every body
+    (``pose_model``: the console's scene, the camera views).
     """
 
     obs: np.ndarray
@@ -45,6 +47,7 @@ class RobotFrame:
     done: bool = False
     info: dict = field(default_factory=dict)
     qpos: np.ndarray | None = None
+    placed: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     @property
     def gripper_command(self) -> float:
@@ -72,7 +75,28 @@ class RobotFrame:
             done=done,
             info=task.episode_info() if done else {},
             qpos=task.joint_positions(),
+            placed=task.placed_poses(),
         )
+
+
+def pose_model(model, data, qpos: np.ndarray, placed: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+    """Poses a viewer's own copy of a task's model (``Task.mj_model``) and its data as a frame shows them:
+    the bodies placed without a joint (``RobotFrame.placed``: children of the world, moved in the model)
+    and the joints (``qpos``), then kinematics, no physics step. ValueError if the model lacks a body or
+    ``qpos`` does not fit it."""
+    import mujoco  # here, not at import: a renderer's process chooses its OpenGL back end before mujoco loads
+
+    qpos = np.asarray(qpos, dtype=np.float64)
+    if qpos.shape != (model.nq,):
+        raise ValueError(f"qpos has shape {qpos.shape}, the model {model.nq} joint positions")
+    for name, (pos, quat) in placed.items():
+        body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+        if body < 0:
+            raise ValueError(f"the model has no body {name!r}")
+        model.body_pos[body] = pos
+        model.body_quat[body] = np.roll(np.asarray(quat, dtype=np.float64), 1)  # (x, y, z, w) -> (w, x, y, z)
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
 
 
 def _jsonable(v):

@@ -89,8 +89,9 @@ def _num(x: float | None, digits: int = 3) -> str:
     return f"{x:.0f}" if abs(x) >= 10**digits else f"{x:.{digits}g}"
 
 
-def _cell(text: str, most: int = 90) -> str:
-    """Text for a markdown table cell: escaped, pipes kept out of the table's syntax, cut at ``most``."""
+def _cell(text: str, most: int = 60) -> str:
+    """Text for a markdown table cell: escaped, pipes kept out of the table's syntax, cut at ``most`` (the fleet
+    table sits in the side panel: a longer reason wraps its row tall; the robot's own panel shows it whole)."""
     text = text if len(text) <= most else text[: most - 1] + "…"
     return plain(text).replace("|", "\\|").replace("\n", " ")
 
@@ -108,13 +109,13 @@ def why_waits(view: RobotView, req: AssistanceRequest | None) -> str:
 
 
 def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
-    """Every robot at a glance: task, mode, how its episode goes (step of its horizon), why it waits, the
-    asking signal's score against its threshold (the request's while it has one), the paper's U against
-    its threshold, outcomes, policy."""
+    """Every robot at a glance, in two tables so that each fits the side panel: first its task, mode, how
+    its episode goes (step of its horizon) and why it waits; then the asking signal's score against its
+    threshold (the request's while it has one), the paper's U against its threshold, outcomes, policy."""
+    glance = ["| Robot | Task | Mode | Episode step | Why it waits |", "|---|---|---|---|---|"]
     lines = [
-        "| Robot | Task | Mode | Episode | Why it waits | Asking: score / threshold | Paper's U / threshold "
-        "| Successes | Assists | Policy |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| Robot | Asking: score / threshold | Paper's U / threshold | Successes | Assists | Policy |",
+        "|---|---|---|---|---|---|",
     ]
     for rid, v in sorted(snapshot.robots.items()):
         name, score, threshold = asking_numbers(v)
@@ -124,14 +125,14 @@ def overview_markdown(snapshot: FleetSnapshot, me: str) -> str:
         mode = MODE_BADGES.get(v.mode, v.mode)
         if req is not None and req.holder:
             mode += f" ({'you' if req.holder == me else plain(req.holder)})"
-        episode = f"step {v.frame.clock} / {v.frame.horizon}" if v.frame is not None else "–"
+        episode = f"{v.frame.clock} / {v.frame.horizon}" if v.frame is not None else "–"
+        glance.append(f"| {rid} | {v.task} | {mode} | {episode} | {_cell(why_waits(v, req))} |")
         lines.append(
-            f"| {rid} | {v.task} | {mode} | {episode} | {_cell(why_waits(v, req))} "
-            f"| {name}: {_num(score)} / {_num(threshold)}{flag} "
+            f"| {rid} | {name}: {_num(score)} / {_num(threshold)}{flag} "
             f"| {_num(u)} / {_num(v.slot.threshold)} "
             f"| {v.successes} / {v.episodes_done} | {v.events} ({v.assisted_steps} steps) | v{v.slot.version} |"
         )
-    return "\n".join(lines)
+    return "\n".join(glance) + "\n\n" + "\n".join(lines)
 
 
 def queue_head(requests: list[AssistanceRequest] | tuple[AssistanceRequest, ...], me: str) -> tuple[int | None, str]:

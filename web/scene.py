@@ -20,9 +20,9 @@ from mjviser import ViserMujocoScene
 from scipy.spatial.transform import Rotation
 
 from policy.uncertainty import UncertaintyConfig, UncertaintyResult
-from sim.frame import RobotFrame
+from sim.frame import RobotFrame, pose_model
 from sim.registry import make_task
-from web.viser_internals import hide_model_groups
+from web.viser_internals import hide_model_groups, move_fixed_body
 
 # contrasting mode colours (Okabe-Ito, colour-blind safe), in the order of the GMM's modes
 MODE_COLORS = np.array(
@@ -161,21 +161,32 @@ class RobotScene:
         self.target: viser.TransformControlsHandle | None = None
         self._frame: RobotFrame | None = None
         self._result: UncertaintyResult | None = None
+        self._placed: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # the placed bodies' poses the view shows
 
     def update(self, frame: RobotFrame | None, result: UncertaintyResult | None) -> None:
         """Sends what changed since the last call (the caller wraps a tick in ``client.atomic()``)."""
         if frame is not None and frame is not self._frame:
             self._frame = frame
             if frame.qpos is not None and len(frame.qpos) == self.model.nq:
-                self.data.qpos[:] = frame.qpos
-                mujoco.mj_kinematics(self.model, self.data)
+                pose_model(self.model, self.data, frame.qpos, frame.placed)
                 self.mj.update_from_mjdata(self.data)
+                self._move_placed(frame.placed)
             self.ee.position, self.ee.wxyz = frame.pos, wxyz(frame.quat)
             self.probe.position = frame.pos
             self.field_root.position = frame.pos
         if result is not self._result and frame is not None:
             self._result = result
             self._draw_field(result, frame.pos)
+
+    def _move_placed(self, placed: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+        """Moves the bodies the task places without a joint (the drawer's cabinet) where they moved since."""
+        for name, (pos, quat) in placed.items():
+            seen = self._placed.get(name)
+            if seen is not None and np.array_equal(seen[0], pos) and np.array_equal(seen[1], quat):
+                continue
+            self._placed[name] = (pos, quat)
+            body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, name)
+            move_fixed_body(self.mj, body, self.data.xpos[body].copy(), self.data.xquat[body].copy())
 
     def _draw_field(self, result: UncertaintyResult | None, centre: np.ndarray) -> None:
         if self.modes is not None:

@@ -15,8 +15,13 @@ of these. When upgrading, check each one against the new release; ``tests/web`` 
   console removes those handlers, and its proxy drops the messages (``message_type``).
 - ``handshake_headers`` / ``close_client``: viser's ``ClientHandle`` does not expose the WebSocket
   handshake, which carries the signed identity the proxy adds, nor a way to close one connection.
+- ``server_messages``: the frame viser's server sends a client (sizes, zstd-compressed msgpack, raw
+  buffers), read by ``hitl bench console``'s protocol clients.
 - ``quiet()``: viser prints a panel with its address when it starts and a line when it stops, whatever
   ``verbose`` says; the console logs its own line instead.
+- ``move_fixed_body``: mjviser draws a body welded to the world (no joint) once, where the model put it
+  when the scene was built; a task that places such a body per episode (the drawer's cabinet) moves
+  its handles (``ViserMujocoScene._fixed_geom_handles``) instead of rebuilding the scene.
 - ``hide_model_groups``: mjviser shows geom and site groups 0-2; robosuite puts its collision geoms in
   group 0, and its sites are helpers (the grip site's tall cylinder, object markers), not the scene.
 """
@@ -101,6 +106,24 @@ def hide_model_groups(model, groups: tuple[int, ...] = (0,)) -> None:
     model.geom_group[np.isin(model.geom_group, groups)] = HIDDEN_GROUP
     model.geom_group[model.body_mocapid[model.geom_bodyid] >= 0] = HIDDEN_GROUP
     model.site_group[:] = HIDDEN_GROUP
+
+
+def move_fixed_body(scene, body: int, position: np.ndarray, wxyz: np.ndarray) -> None:
+    """Moves the geometry mjviser drew for ``body``, a body welded to the world, of ``scene``
+    (``mjviser.ViserMujocoScene``) to the world pose (``position``, ``wxyz``)."""
+    for (owner, _group, _sub), handle in scene._fixed_geom_handles.items():
+        if owner == body:
+            handle.position, handle.wxyz = position, wxyz
+
+
+def server_messages(frame: bytes) -> list[dict]:
+    """The messages of one frame viser's server sent a client: its decompressed and compressed sizes (8 bytes
+    each, little-endian), the zstd-compressed msgpack ``{"messages": [...], ...}``, then raw buffers."""
+    import zstandard  # viser's own dependency
+
+    size, packed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
+    window = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16 : 16 + packed], size))
+    return list(window.get("messages", ())) if isinstance(window, dict) else []
 
 
 def on_handshake(server: viser.ViserServer, callback, hangup) -> None:

@@ -125,6 +125,10 @@ class OpenDrawerTask(Task):
     def metadata(self) -> dict:
         return super().metadata() | {"intended_drawer": self.intended, "intended_name": DRAWER_NAMES[self.intended]}
 
+    def placed_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """The cabinet: ``place`` sets its position in the model (it has no joint of its own)."""
+        return {self.cabinet.root_body: self.body_pose(self.body_id(self.cabinet.root_body))}
+
     def object_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         identity = Rotation.identity().as_quat()
         root = self.body_id(self.cabinet.root_body)

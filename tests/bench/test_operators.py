@@ -124,3 +124,27 @@ def test_the_figure_draws_each_run_against_the_fleets_size(tmp_path):
     report["robots_per_operator"] = 2
     out = plot_operators([("today", report), ("before", dict(report, robots_per_operator=None))], tmp_path / "f.png")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
+
+
+def test_the_command_draws_an_earlier_report_beside_another_without_running(tmp_path, capsys):
+    """``--from`` redraws a saved report (``make operators-figure``): nothing runs, nothing is overwritten."""
+    import json
+
+    from hitl.cli import main
+
+    def report(rate):
+        size = {
+            "robots": 7,
+            "per_task": {"lift-cube": {"success_rate": rate}},
+            "queue_wait": {"p95_ticks": 50.0, "max_ticks": 90.0},
+        }
+        return {"plan": {"mix": {"lift-cube": 1.0}}, "sizes": [size], "robots_per_operator": 7}
+
+    today, before = tmp_path / "today.json", tmp_path / "before.json"
+    today.write_text(json.dumps(report(1.0)))
+    before.write_text(json.dumps(report(0.5)))
+    figure, out = tmp_path / "f.png", tmp_path / "not-written.json"
+    args = ["bench", "operators", "--from", str(today), "--figure", str(figure), "--out", str(out)]
+    assert main([*args, "--compare", f"before={before}"]) == 0
+    assert json.loads(capsys.readouterr().out) == report(1.0)
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not out.exists()

@@ -3,6 +3,7 @@ robots' front and wrist cameras from their frames' joint positions; when no rend
 mid-run, the feed says so and stays off; a takeover segment carries the views its operator saw, as
 ``foxglove.CompressedImage`` that an MCAP reader gives back as JPEG."""
 
+import dataclasses
 import io
 import time
 
@@ -63,6 +64,29 @@ def test_a_watched_robot_is_rendered_from_its_frame_and_each_new_frame_once(fram
         )
         assert np.abs(_rgb(second.images["front"]).astype(int) - front.astype(int)).mean() > 0.5  # the cube moved
         assert [s.robot_id for s in seen] == [0, 0]
+    finally:
+        feed.close()
+
+
+def test_the_views_show_the_drawers_cabinet_where_the_frame_placed_it():
+    """The cabinet has no joint (``RobotFrame.placed``): the renderer moves it as the frame says."""
+    task = make_task("open-drawer")
+    try:
+        task.reset(3)
+        frame = RobotFrame.from_task(task)
+    finally:
+        task.close()
+    ((root, (pos, quat)),) = frame.placed.items()
+    moved = dataclasses.replace(frame, t=frame.t + 1, placed={root: (pos + np.array([0.0, 0.15, 0.0]), quat)})
+    current = {0: frame}
+    feed = CameraFeed(lambda rid: ("open-drawer", current[rid]), hz=20.0, size=(96, 72))
+    try:
+        first = wait_for(lambda: feed.view(0).images, timeout=180)
+        current[0] = moved
+        second = wait_for(lambda: _newer(feed, first), 60)
+        assert second.t == moved.t
+        change = np.abs(_rgb(second.images["front"]).astype(int) - _rgb(first.images["front"]).astype(int)).mean()
+        assert change > 2.0  # the cabinet moved 15 cm across the front camera's view
     finally:
         feed.close()
 

@@ -217,16 +217,19 @@ def test_the_panel_shows_the_request_a_robot_waits_on_and_the_papers_u_apart():
     robot.scores = {"spread": 0.3}
     robot.u_history.append(0.062)
     robot.publish()
-    header, _, row = overview_markdown(FleetSnapshot({0: robot.view}, ()), "me").splitlines()
-    assert "| Episode | Why it waits | Asking: score / threshold | Paper's U / threshold" in header
-    assert "| autonomous | – |  | spread: 0.3 / 0.5 | 0.062 / 2 |" in row  # no frame yet, works alone
+    glance, scores = overview_markdown(FleetSnapshot({0: robot.view}, ()), "me").split("\n\n")
+    assert glance.splitlines()[0] == "| Robot | Task | Mode | Episode step | Why it waits |"
+    assert glance.splitlines()[2] == "| 0 | lift-cube | autonomous | – |  |"  # no frame yet, works alone
+    assert scores.splitlines()[0].startswith("| Robot | Asking: score / threshold | Paper's U / threshold |")
+    assert scores.splitlines()[2].startswith("| 0 | spread: 0.3 / 0.5 | 0.062 / 2 |")
     queue = AssistanceQueue(10.0)
     robot.ask = queue.ask(0, AskRecord("spread", 2.4, 0.5, "spread: stall 2.4× its threshold", 7, 0.062)).ask
     robot.set_mode("waiting")
     robot.publish()
     snap = FleetSnapshot({0: robot.view}, tuple(queue.pending()))
-    row = overview_markdown(snap, "me").splitlines()[2]
-    assert "| spread: stall 2.4× its threshold | spread: 2.4 / 0.5 ⚠ | 0.062 / 2 |" in row  # why, in the queue's words
+    glance, scores = overview_markdown(snap, "me").split("\n\n")
+    assert glance.splitlines()[2].endswith("| spread: stall 2.4× its threshold |")  # why, in the queue's words
+    assert scores.splitlines()[2].startswith("| 0 | spread: 2.4 / 0.5 ⚠ | 0.062 / 2 |")
     text = robot_markdown(robot.view, snap.request(0), snap.now, "me", make_task("lift-cube"))
     assert "| **spread** (asked at step 7) | 2.4 | 0.5 |" in text
     assert "**Asked:** spread: stall 2.4× its threshold" in text
@@ -241,7 +244,7 @@ def test_the_fleet_table_keeps_a_reason_inside_its_cell_and_says_where_each_epis
     from web.panels import _cell, why_waits
 
     assert _cell("a | b\nc <b>") == "a \\| b c &lt;b&gt;"
-    assert _cell("x" * 200).endswith("…") and len(_cell("x" * 200)) == 90
+    assert _cell("x" * 200).endswith("…") and len(_cell("x" * 200)) == 60
     view = SimpleNamespace(mode="faulted", fault="worker exited with code -9")
     assert why_waits(view, None) == "fault: worker exited with code -9"
     req = AssistanceRequest(1, 0, 1.0, 0.5, "watchdog: 120 of 150 steps without success")
@@ -270,3 +273,73 @@ def test_the_scene_draws_no_stray_objects_only_the_tasks_visual_geoms():
         task.close()
     assert not [b for b in shown if "eef_target" in b]
     assert "cube_main" in shown and "table" in shown
+
+
+def test_the_scene_draws_the_drawers_cabinet_where_each_episode_placed_it():
+    """mjviser draws a body welded to the world once, where the model had it; the scene moves the
+    cabinet (placed per episode without a joint) to each frame's place, and its drawers with it."""
+    import copy
+    from types import SimpleNamespace
+
+    import mujoco
+    import torch
+    import viser
+
+    from sim.frame import RobotFrame
+    from tests.helpers import free_port
+    from web.scene import RobotScene
+    from web.viser_internals import quiet
+
+    task = make_task("open-drawer")
+    try:
+        frames = []
+        for seed in (3, 4):
+            task.reset(seed)
+            frames.append(RobotFrame.from_task(task))
+        model = copy.deepcopy(task.mj_model())
+        root = task.cabinet.root_body
+    finally:
+        task.close()
+    body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, root)
+    model.body_pos[body] = 0.0  # where no episode puts it
+    with quiet():
+        server = viser.ViserServer(host="127.0.0.1", port=free_port())
+    try:
+        normalizer = SimpleNamespace(span=torch.ones(10))
+        scene = RobotScene(server, 0, model, normalizer, 1)
+        drawn = [h for (b, _, _), h in scene.mj._fixed_geom_handles.items() if b == body]
+        assert drawn and np.allclose(drawn[0].position, 0.0)
+        for frame in frames:
+            scene.update(frame, None)
+            assert all(np.allclose(h.position, frame.placed[root][0]) for h in drawn)
+    finally:
+        with quiet():
+            server.stop()
+
+
+def test_frames_from_visers_server_read_back_as_its_messages():
+    """``server_messages`` reads the pinned viser's wire frames (what ``hitl bench console``'s protocol
+    clients read to pick their robots)."""
+    import viser
+    from websockets.sync.client import connect
+
+    from tests.helpers import free_port
+    from web.viser_internals import SUBPROTOCOL, quiet, server_messages
+
+    port = free_port()
+    with quiet():
+        server = viser.ViserServer(host="127.0.0.1", port=port)
+    try:
+        server.gui.add_dropdown("Robot", options=("0 · lift-cube", "1 · lift-cube"))
+        seen: list[dict] = []
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
+            for _ in range(50):
+                seen += server_messages(ws.recv(timeout=10))
+                if any(m.get("type") == "GuiDropdownMessage" for m in seen):
+                    break
+        dropdown = next(m for m in seen if m.get("type") == "GuiDropdownMessage")
+        assert isinstance(dropdown["uuid"], str) and dropdown["props"]["label"] == "Robot"
+        assert list(dropdown["props"]["options"]) == ["0 · lift-cube", "1 · lift-cube"]
+    finally:
+        with quiet():
+            server.stop()
