@@ -260,13 +260,13 @@ nights-lift-docs: install
 	$(BIN)/hitl bench nights --config configs/nights-lift.toml --days 2 --day-minutes 10 --data-dir var/bench-nights-lift \
 		--out docs/results/nights/lift.json --figure docs/figures/nights-lift.png --quiet > /dev/null
 
-# docs/benchmarks/service.md, "Robots per operator": fleets of 7-20 robots (70% lift-cube, 10% each of lift-hammer,
+# docs/benchmarks/service.md, "Robots per operator": fleets of 8-20 robots (70% lift-cube, 10% each of lift-hammer,
 # cup-stack and open-drawer) served by one simulated operator at a person's pace through hitl serve, on a 5 Hz clock
 # (this machine does not step 20 robots at 10 Hz); then the queue's orders compared at 10 robots (about 40 min;
-# 7 is the smallest fleet in which every task of the mix has a robot)
+# 8 is the smallest fleet in which every task of the mix has a robot)
 operators-docs: install
 	rm -rf var/bench-operators
-	$(BIN)/hitl bench operators --sizes 7 10 15 20 --control-hz 5 --ticks 1500 --data-dir var/bench-operators \
+	$(BIN)/hitl bench operators --sizes 8 10 15 20 --control-hz 5 --ticks 1500 --data-dir var/bench-operators \
 		--out docs/results/service/operators.json --figure docs/figures/operators.png --quiet > /dev/null
 	for o in cur fcfs; do $(BIN)/hitl bench operators --sizes 10 --control-hz 5 --ticks 1500 --order $$o \
 		--data-dir var/bench-operators --out docs/results/service/operators-$$o.json --quiet > /dev/null || exit 1; done
@@ -287,7 +287,7 @@ operators-before-docs: install
 	rm -rf var/operators-before && git worktree prune
 	git worktree add --detach var/operators-before $(OPERATORS_BEFORE)
 	git -C var/operators-before apply $(CURDIR)/bench/before/operators-$(OPERATORS_BEFORE).patch
-	(cd var/operators-before && $(abspath $(BIN))/python -m hitl.cli bench operators --sizes 7 10 15 20 --control-hz 5 \
+	(cd var/operators-before && $(abspath $(BIN))/python -m hitl.cli bench operators --sizes 8 10 15 20 --control-hz 5 \
 		--ticks 1500 --data-dir ../bench-operators-before --quiet) > docs/results/service/operators-before.json
 	git worktree remove --force var/operators-before
 	$(MAKE) operators-figure

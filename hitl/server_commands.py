@@ -405,7 +405,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         "operators",
         help="robots per operator: fleets of each size served by one simulated operator, through the service",
     )
-    q.add_argument("--sizes", type=int, nargs="+", default=[7, 10, 15, 20], help="fleet sizes, each a fresh service")
+    q.add_argument("--sizes", type=int, nargs="+", default=[8, 10, 15, 20], help="fleet sizes, each a fresh service")
     q.add_argument(
         "--mix", nargs="+", metavar="TASK=SHARE", help="default lift-cube=0.7 and 0.1 of hammer, cup, drawer"
     )
