@@ -281,13 +281,13 @@ operators-figure: install
 # that had landed before the oracle, the steerable policies and choice-stall (commit $(OPERATORS_BEFORE): spread-stall
 # and that commit's bundles), served by that commit's service with this benchmark added to it
 # (bench/before/operators-$(OPERATORS_BEFORE).patch: the benchmark, the bot's pace and the queue's orders); needs the
-# repository's history (about 25 min)
+# repository's history (about 15 min; the sizes at which robots per operator is decided today)
 OPERATORS_BEFORE := c1db223
 operators-before-docs: install
-	rm -rf var/operators-before && git worktree prune
+	rm -rf var/operators-before var/bench-operators-before && git worktree prune
 	git worktree add --detach var/operators-before $(OPERATORS_BEFORE)
 	git -C var/operators-before apply $(CURDIR)/bench/before/operators-$(OPERATORS_BEFORE).patch
-	(cd var/operators-before && $(abspath $(BIN))/python -m hitl.cli bench operators --sizes 8 10 15 20 --control-hz 5 \
+	(cd var/operators-before && $(abspath $(BIN))/python -m hitl.cli bench operators --sizes 8 10 --control-hz 5 \
 		--ticks 1500 --data-dir ../bench-operators-before --quiet) > docs/results/service/operators-before.json
 	git worktree remove --force var/operators-before
 	$(MAKE) operators-figure
