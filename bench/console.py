@@ -155,12 +155,18 @@ def _wire_process(p: dict, go, out) -> None:
         }
     )
 
-    def picker(data: bytes) -> str | None:
-        """The id of the panel's robot picker (the "Robot" dropdown), if this frame creates it."""
+    def picker(data: bytes, found: dict) -> bool:
+        """Reads a frame for the panel's robot picker (the "Robot" dropdown): its id when it is created, then
+        its options once the panel's tick fills them in (the panel listens to the picker by then). True when
+        the picker offers ``found["want"]``."""
         for m in server_messages(data):
             if m.get("type") == "GuiDropdownMessage" and (m.get("props") or {}).get("label") == "Robot":
-                return m["uuid"]
-        return None
+                found["uuid"] = m["uuid"]
+            elif m.get("type") == "GuiUpdateMessage" and m.get("uuid") == found.get("uuid"):
+                offered = (m.get("updates") or {}).get("options", ())
+                if found["want"] in offered:
+                    return True
+        return False
 
     async def client(k: int, count: dict, state: dict) -> None:
         form = {"Content-Type": "application/x-www-form-urlencoded", "Origin": p["url"]}
@@ -169,7 +175,7 @@ def _wire_process(p: dict, go, out) -> None:
         url = p["url"].replace("http://", "ws://") + "/console"
         async with websockets.connect(url, subprotocols=[SUBPROTOCOL], additional_headers=headers, max_size=None) as ws:
             await ws.send(camera)
-            picked = False
+            picked, found = False, {"want": f"{k} · {p['task']}"}
             while not state["done"]:
                 try:
                     data = await asyncio.wait_for(ws.recv(), timeout=1.0)
@@ -177,8 +183,8 @@ def _wire_process(p: dict, go, out) -> None:
                     continue
                 count["messages"] += 1
                 count["bytes"] += len(data)
-                if not picked and isinstance(data, bytes) and (uuid := picker(data)) is not None:
-                    pick = {"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": f"{k} · {p['task']}"}}
+                if not picked and isinstance(data, bytes) and picker(data, found):
+                    pick = {"type": "GuiUpdateMessage", "uuid": found["uuid"], "updates": {"value": found["want"]}}
                     await ws.send(msgspec.msgpack.encode(pick))
                     picked = count["picked"] = True
 
@@ -270,8 +276,10 @@ def bench_console(
                     browser_process.go()
                     loaded = measure(Window(fleet, browser_process.pid), seconds, bar)
                     stats1 = (console.stats.ticks, console.stats.tick_cpu_s, console.stats.frames_sent)
+                    viewed = console.viewed()
                     camera = fleet.cameras.view(0)
                     views = {
+                        "robots_viewed": sorted(r for r in viewed if r is not None),
                         "enabled": cameras,
                         "available": camera.available,
                         "reason": camera.reason,

@@ -112,6 +112,11 @@ class Console:
         with self._lock:
             return len(self._panels)
 
+    def viewed(self) -> list[int | None]:
+        """The robot each connected browser's panel shows (None: none yet)."""
+        with self._lock:
+            return [panel.robot_id for panel in self._panels.values()]
+
     # -- connections ---------------------------------------------------------------------------------
     def _handshake(self, client_id: int) -> None:
         try:  # runs inside viser's connection handler: nothing may escape it
