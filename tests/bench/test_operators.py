@@ -116,7 +116,10 @@ def test_the_figure_draws_each_run_against_the_fleets_size(tmp_path):
     def size(n, rate, p95):
         return {
             "robots": n,
-            "per_task": {"lift-cube": {"success_rate": 1.0}, "open-drawer": {"success_rate": rate}},
+            "per_task": {
+                "lift-cube": {"success_rate": 1.0, "episodes": 9, "robots": 1},
+                "open-drawer": {"success_rate": rate, "episodes": 2, "robots": 1},
+            },
             "queue_wait": {"p95_ticks": p95, "max_ticks": 2 * p95},
         }
 
