@@ -101,7 +101,7 @@ def _client_process(p: dict, go, out) -> None:
                 page.fill("#token", p["token"])
                 page.click("button[type=submit]")
                 page.wait_for_url(f"{p['url']}/console/")
-                page.get_by_role("combobox").click()
+                page.get_by_role("combobox", name="Robot").click()
                 page.get_by_role("option", name=f"{i} · ").first.click()
                 pages.append(page)
                 counts.append(count)
@@ -202,7 +202,7 @@ def _wire_process(p: dict, go, out) -> None:
         seconds = time.monotonic() - t0
         missed = [k for k, c in enumerate(counts) if not c["picked"]]
         if missed:
-            raise RuntimeError(f"clients {missed} never received the robot picker: their robots were not picked")
+            raise RuntimeError(f"clients {missed}: the robot picker never offered their robots, none was picked")
         result = [
             {"robot": k, "messages_per_s": c["messages"] / seconds, "bytes_per_s": c["bytes"] / seconds}
             for k, c in enumerate(counts)
@@ -273,10 +273,10 @@ def bench_console(
                 with ClientProcess(target, p, "the browsers", READY_TIMEOUT_S, join_timeout=30) as browser_process:
                     stats0 = (console.stats.ticks, console.stats.tick_cpu_s, console.stats.frames_sent)
                     rendered0 = fleet.cameras.rendered
+                    viewed = console.viewed()  # now: the clients leave as their own window ends
                     browser_process.go()
                     loaded = measure(Window(fleet, browser_process.pid), seconds, bar)
                     stats1 = (console.stats.ticks, console.stats.tick_cpu_s, console.stats.frames_sent)
-                    viewed = console.viewed()
                     camera = fleet.cameras.view(0)
                     views = {
                         "robots_viewed": sorted(r for r in viewed if r is not None),

@@ -70,7 +70,7 @@ def take_screenshots(config: Path, out: Path, chromium: str = CHROMIUM, settle_s
             written.append(_shot(page, out / "console-fleet.png"))
 
             page.get_by_role("tab", name="Robot").click()
-            page.get_by_role("combobox").first.click()  # the robot drop-down (the takeover list has one too)
+            page.get_by_role("combobox", name="Robot").click()  # the robot drop-down (the takeover list has one too)
             page.get_by_role("option", name=f"{rid} · ").first.click()
             time.sleep(settle_s)  # the scene builds in a few seconds
             page.get_by_role("button", name="Look at the gripper (F)").click()
