@@ -186,6 +186,9 @@ class KinematicTask:
     def joint_positions(self):
         return None  # no simulated scene to pose
 
+    def placed_poses(self):
+        return {}
+
     def gripper_opening(self):
         return 0.08 if self.action[9] < 0 else 0.0
 
