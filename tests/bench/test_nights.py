@@ -115,13 +115,21 @@ def test_days_and_nights_through_the_service_with_a_crash_mid_night(quick_fleet)
     for day in (day1, day2):
         for task in ("lift-cube", "lift-hammer"):
             t = day["per_task"][task]
-            assert t["episodes"] >= 1 and t["requests_per_episode"] > 0, (task, day, days[0].bot, days[-1].bot)
-            assert t["assisted_steps_per_episode"] > 0 and t["operator_seconds_per_episode"] > 0
+            assert t["episodes"] >= 1, (task, day, days[0].bot, days[-1].bot)
             # day 1 ran on policy@1; day 2 on what the gate left active (a refused candidate never serves)
             assert t["versions"] == {("policy@1" if day is day1 else serving): t["episodes"]}
-            # the tiny policy's signal asks at once (its threshold is under every score): no watchdog
+            helped, assisted = t["assisted_steps_per_helped_episode"], t["assisted_steps_per_episode"]
+            if day is day2 and promoted:
+                # a promoted version's choice-stall thresholds were fitted on its own episodes by the job:
+                # it asks where its scores say so, possibly never in a short day; what it asked is its signal's
+                assert set(t["takeovers_by_cause"]) <= {"choice-stall"}, t
+                assert (helped is None) == (not assisted) and (helped is None or helped >= assisted), t
+                continue
+            assert helped >= assisted
+            # policy@1's signal asks at once (its threshold is under every score): no watchdog
+            assert t["requests_per_episode"] > 0, (task, day, days[0].bot, days[-1].bot)
+            assert t["assisted_steps_per_episode"] > 0 and t["operator_seconds_per_episode"] > 0
             assert set(t["takeovers_by_cause"]) == {"choice-stall"}, t
-            assert t["assisted_steps_per_helped_episode"] >= t["assisted_steps_per_episode"]
     assert report["nights"][0]["jobs"][0]["gate"]["promote"] is promoted
     assert report["goals"]["day2"]["assisted_steps_ratio"] is not None
     assert day2["clock"].startswith(due.date().isoformat())
