@@ -176,12 +176,16 @@ def size_report(
     busy_s: float,
 ) -> dict:
     """One size's figures from what its service recorded: ``claims`` (robot, seconds its request waited) and
-    ``unclaimed`` (robot, age at the end) are the queue's; ``hz`` the clock the fleet held (ticks per second)."""
+    ``unclaimed`` (robot, age at the end) are the queue's; ``hz`` the clock the fleet held (ticks per second).
+
+    Success counts the episodes that ended in the window; operator steps count every takeover opened in it
+    (``segments``, each with the steps the operator drove), those of episodes still running at its end too,
+    so ROHE (successes per operator step) charges the effort a fleet spent on episodes it did not finish."""
     per_task = {}
     for task, robots in counts.items():
         done = [e for e in episodes if e.task == task and e.outcome in FINISHED]
         ok = sum(e.outcome == "success" for e in done)
-        steps = sum(e.assisted_steps for e in done)
+        steps = sum(g.steps for g in segments if g.task == task)
         waits = [w for r, w in claims if task_of.get(r) == task] + [w for r, w in unclaimed if task_of.get(r) == task]
         per_task[task] = {
             "robots": robots,
@@ -198,7 +202,7 @@ def size_report(
     all_waits = [w for _, w in claims] + [w for _, w in unclaimed]
     done = [e for e in episodes if e.outcome in FINISHED]
     ok = sum(e.outcome == "success" for e in done)
-    steps = sum(e.assisted_steps for e in done)
+    steps = sum(g.steps for g in segments)
     return {
         "robots": sum(counts.values()),
         "counts": counts,

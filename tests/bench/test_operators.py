@@ -62,7 +62,9 @@ def test_one_sizes_figures_from_records_and_the_headline_conditions():
     counts = {"lift-cube": 2, "open-drawer": 1}
     episodes = [_episode("lift-cube", "success", 0)] * 9 + [_episode("lift-cube", None, 0)]  # one still running
     episodes += [_episode("open-drawer", "success", 4)] * 3 + [_episode("open-drawer", "timeout", 8)]
-    segments = [SimpleNamespace(task="open-drawer")] * 4
+    # the drawer's takeovers: one per episode that ended (4, 4, 4, 8 steps), one of the episode still running (6)
+    segments = [SimpleNamespace(task="open-drawer", steps=n) for n in (4, 4, 4, 8, 6)]
+    episodes += [_episode("open-drawer", None, 6)]
     task_of = {0: "lift-cube", 1: "lift-cube", 2: "open-drawer"}
     out = size_report(
         counts, episodes, segments, [(2, 1.0), (2, 2.0), (2, 3.0)], [(2, 4.0)], task_of, 100.0, 10.0, 30.0
@@ -70,8 +72,9 @@ def test_one_sizes_figures_from_records_and_the_headline_conditions():
     lift, drawer = out["per_task"]["lift-cube"], out["per_task"]["open-drawer"]
     assert lift["episodes"] == 9 and lift["success_rate"] == 1.0 and lift["queue_wait"]["n"] == 0
     assert lift["rohe"] is None and lift["robot_idle"] == 0.0
-    assert drawer["success_rate"] == 0.75 and drawer["takeovers"] == 4 and drawer["operator_steps"] == 20
-    assert drawer["rohe"] == pytest.approx(3 / 20)
+    assert drawer["success_rate"] == 0.75 and drawer["takeovers"] == 5 and drawer["operator_steps"] == 26
+    assert drawer["rohe"] == pytest.approx(3 / 26)  # the running episode's effort is charged too
+    assert out["operator_steps"] == 26 and out["rohe"] == pytest.approx(12 / 26)
     assert drawer["queue_wait"]["max_s"] == 4.0 and drawer["queue_wait"]["max_ticks"] == 40.0
     assert drawer["queue_wait"]["p50_ticks"] == pytest.approx(25.0) and drawer["unclaimed_at_end"] == 1
     assert drawer["robot_idle"] == pytest.approx(10.0 / 100.0)
