@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
 .PHONY: install osmesa demo test lint docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
 	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
-	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-before-docs asking-dev-docs choice-dev-docs \
+	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-before-docs operators-hand-back-docs asking-dev-docs choice-dev-docs \
 	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs lift-variants-docs clean
 
 $(BIN)/python:
@@ -271,6 +271,14 @@ operators-docs: install
 	for o in cur fcfs; do $(BIN)/hitl bench operators --sizes 10 --control-hz 5 --ticks 1500 --order $$o \
 		--data-dir var/bench-operators --out docs/results/service/operators-$$o.json --quiet > /dev/null || exit 1; done
 	$(MAKE) operators-figure
+
+# docs/benchmarks/service.md, "The hand-back this run measures": the 10-robot fleet of operators-docs handed back
+# without return_after (a takeover lasts until its episode ends) and after 1 agreeing step (about 11 min)
+operators-hand-back-docs: install
+	rm -rf var/bench-operators-return-*
+	for r in none 1; do $(BIN)/hitl bench operators --sizes 10 --control-hz 5 --ticks 1500 --set return_after=$$r \
+		--data-dir var/bench-operators-return-$$r --out docs/results/service/operators-return-$$r.json --quiet \
+		> /dev/null || exit 1; done
 
 # the figure, today's sweep beside the one before (operators-before-docs) where it has been run
 operators-figure: install

@@ -395,7 +395,9 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--mode", choices=["budgeted", "continuous"], default="continuous", help="hand-back mode")
     q.add_argument("--config", type=Path, default=None, help="service config (default: configs/demo.toml)")
     q.add_argument("--data-dir", type=Path, default=None, help="where the run's database goes (default: a temp dir)")
-    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown=20")
+    q.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown=20 (none unsets an optional one)"
+    )
     q.add_argument("--no-bot", action="store_true", help="no operator: what the fleet does on its own")
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
@@ -416,7 +418,12 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--switch-ticks", type=int, default=20, help="further delay when switching to another robot")
     q.add_argument("--min-takeover-ticks", type=int, default=20, help="the least time a takeover occupies them")
     q.add_argument("--config", type=Path, default=None, help="service config (default: configs/operators.toml)")
-    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. signal=spread-stall")
+    q.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="a setting, e.g. signal=spread-stall (none unsets an optional one)",
+    )
     q.add_argument("--data-dir", type=Path, default=None, help="where each size's service folder goes (default: temp)")
     q.add_argument("--out", type=Path, default=None, help="also write the JSON report here")
     q.add_argument("--figure", type=Path, default=None, help="success and queue wait against the fleet's size")
@@ -440,7 +447,9 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         "--night-timeout", type=float, default=180.0, help="minutes a night's job may take before the run stops"
     )
     q.add_argument("--data-dir", type=Path, default=None, help="the run's service folder (default: a temp dir)")
-    q.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown=20")
+    q.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown=20 (none unsets an optional one)"
+    )
     q.add_argument("--quick", action="store_true", help="a tiny fleet and job, for CI (2 days, minutes)")
     q.add_argument("--out", type=Path, default=None, help="also write the JSON report here")
     q.add_argument("--figure", type=Path, default=None, help="write the effort-and-success figure here (PNG)")

@@ -161,7 +161,10 @@ class FinetuneSettings(BaseModel):
 
 
 class Settings(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="forbid", populate_by_name=True)
+    # a variable set to "none" unsets an optional setting the file sets (`--set return_after=none`)
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX, extra="forbid", populate_by_name=True, env_parse_none_str="none"
+    )
 
     data_dir: Path = Path("var")
     database_url: str | None = Field(None, validation_alias=AliasChoices("HITL_DATABASE_URL", "DATABASE_URL"))

@@ -25,6 +25,19 @@ def test_settings_come_from_the_file_with_environment_and_flags_on_top(tmp_path,
     assert Settings.load(config, port=9003).port == 9003  # command-line flags win
 
 
+def test_a_variable_set_to_none_unsets_what_the_file_sets(tmp_path, monkeypatch):
+    config = tmp_path / "fleet.toml"
+    config.write_text('hand_back = "continuous"\nreturn_after = 3\nwatchdog = 0.8\n')
+    assert Settings.load(config).return_after == 3
+    monkeypatch.setenv("HITL_RETURN_AFTER", "none")  # as `--set return_after=none` gives it
+    monkeypatch.setenv("HITL_WATCHDOG", "none")
+    s = Settings.load(config)
+    assert s.return_after is None and s.watchdog is None and s.hand_back == "continuous"
+    monkeypatch.setenv("HITL_RETURN_AFTER", "nothing")
+    with pytest.raises(ValueError, match="return_after"):
+        Settings.load(config)
+
+
 @pytest.mark.parametrize(
     ("text", "match"),
     [
