@@ -16,11 +16,11 @@ rate the fleet held is measured (``/metrics/fleet``'s tick count over the run's 
 whose fleet fell more than 5% short of its clock is marked ``kept_clock: false``. No size that was not
 run is reported.
 
-**Per size and per task** (episodes that ended during the run; one still running at the end is not
-counted, and neither is what the operator does after it): success rate; queue waits from request to
-claim, p50 / p95 / max, in seconds and ticks, with the requests still unclaimed at the end counted at
-their age so far; takeovers and operator steps; return on human effort (ROHE: successes per operator
-step); robot idle time (the share of the robots' time spent waiting for the operator). Per size: the
+**Per size and per task:** success rate of the episodes that ended during the run (one still running at
+the end is not counted); queue waits from request to claim, p50 / p95 / max, in seconds and ticks, with
+the requests still unclaimed at the end counted at their age so far; takeovers opened during the run and
+the steps the operator drove in them (those of episodes still running at the end too); return on human
+effort (ROHE: successes per operator step, so effort on unfinished episodes is charged); robot idle time (the share of the robots' time spent waiting for the operator). Per size: the
 operator's utilisation (busy time, delays included, over the run's time).
 
 **Robots per operator** (``robots_per_operator``): the largest size run at which the fleet held its
