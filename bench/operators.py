@@ -20,8 +20,9 @@ run is reported.
 the end is not counted); queue waits from request to claim, p50 / p95 / max, in seconds and ticks, with
 the requests still unclaimed at the end counted at their age so far; takeovers opened during the run and
 the steps the operator drove in them (those of episodes still running at the end too); return on human
-effort (ROHE: successes per operator step, so effort on unfinished episodes is charged); robot idle time (the share of the robots' time spent waiting for the operator). Per size: the
-operator's utilisation (busy time, delays included, over the run's time).
+effort (ROHE: successes per operator step, so effort on unfinished episodes is charged); robot idle
+time (the share of the robots' time spent waiting for the operator). Per size: the operator's
+utilisation (busy time, delays included, over the run's time).
 
 **Robots per operator** (``robots_per_operator``): the largest size run at which the fleet held its
 clock, every task of the mix has a robot, every task succeeds in at least 95% of its episodes, the
