@@ -132,6 +132,7 @@ class OperatorBot:
             self.waits.append((robot_id, float(r.json()["waiting_s"])))
         steps = 0
         try:
+            self._wait_claimed(robot_id)
             raw = self._get(f"/robots/{robot_id}/view")
             view = self._view(robot_id, raw)
             expert = self._expert_for(robot_id, view, raw, seed)
@@ -229,6 +230,13 @@ class OperatorBot:
         carry_on = left_at is not None and left_at == raw.get("clock")
         expert.take_over(task, int(episode), int(raw.get("events") or 0), carry_on)
         return expert
+
+    def _wait_claimed(self, robot_id: int, timeout: float = 5.0) -> None:
+        """Until the service's next control tick has put the claimed robot under control: it shows
+        ``waiting`` until then (or for good, when the claim came too late)."""
+        deadline = time.monotonic() + timeout
+        while self._get(f"/robots/{robot_id}")["mode"] == "waiting" and time.monotonic() < deadline:
+            time.sleep(0.01)
 
     def _wait_applied(self, robot_id: int, before: int, clock: int | None, timeout: float = 5.0) -> None:
         """Until the step of the command just sent is done: the robot's clock moved past ``clock`` (or,

@@ -13,9 +13,11 @@ Per robot, keyed by robot id, the controller owns:
 - its seeded sampling noise: each episode's DDIM noise comes from a generator seeded by the
   controller's seed and the episode seed, so a robot's actions do not depend on which other robots
   share its batch;
-- the mode: ``autonomous`` (the policy acts), ``waiting`` (it asked for help and holds its pose) or
-  ``teleop`` (an operator's commands drive it); the asking signal's trigger state lives in the
-  signal, keyed by the same ids, and is consulted for teleoperated robots too (switch-back rules).
+- its control state, ``policy.hitl_state.RobotControl`` (the fleet passes the robot's own; the one
+  record of its mode and counters): ``autonomous`` (the policy acts), ``waiting`` (it asked for help
+  and holds its pose) or ``teleop`` (an operator's commands drive it). The signals keep only their
+  scoring memory; what a robot's takeovers were reaches their trigger rules from that state
+  (``TriggerState``), and is consulted for teleoperated robots too (switch-back rules).
 
 One step takes each robot's new ``RobotFrame`` and any operator command, and returns each robot's
 action, its source (``policy``, ``operator``, ``hold``), every signal's score and decision, and
@@ -30,7 +32,10 @@ paper's continuous mode is ``return_after = 1``). After a hand-back the robot do
 ``cooldown`` policy steps, unless the signal's request is ``urgent`` (``AssistanceSignal.urgent``: the
 policy's next step would undo the takeover, so holding the request back would lose the operator's
 work). The ``watchdog`` makes a robot ask once per episode when it has used that
-fraction of its horizon without success, whatever its signal says.
+fraction of its horizon without success, whatever its signal says. An asking signal that scores the
+policy's agreement with the operator (``Scores.parts["agrees"]``) keeps wanting help, request after
+request, until the policy agrees with the operator's last step (``TriggerState``: ThriftyDAgger's
+switch-back with the policy scored in shadow); the control state keeps that agreement for the signal.
 
 Episodes: waiting for help holds the robot without using up the horizon (hold steps do not count,
 ``Task.step``); operator steps count, as in the paper; a timeout never ends an episode under an
@@ -42,7 +47,6 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Literal
 
 import numpy as np
@@ -50,20 +54,15 @@ import torch
 
 from policy.diffusion_policy import DiffusionPolicy
 from policy.hand_back import HAND_BACK, RESUME
+from policy.hitl_state import Mode, RobotControl
 from policy.inference import Inference, InferenceRequest, InferenceUnavailable, LocalInference
-from policy.signals.base import AssistanceSignal, SignalError
+from policy.signals.base import AGREES, AssistanceSignal, SignalError
 from policy.uncertainty import UncertaintyBatch, UncertaintyResult
 from sim.frame import RobotFrame
 from sim.spaces import ACTION_DIM, ActionSpace, TeleopCommand, TeleopTarget
 from storage import keys
 
 WATCHDOG = "watchdog"  # RobotStep.asked_by when the robot asked because its episode ran long
-
-
-class Mode(StrEnum):
-    AUTONOMOUS = "autonomous"
-    WAITING = "waiting"
-    TELEOP = "teleop"
 
 
 @dataclass(frozen=True)
@@ -138,22 +137,15 @@ class RobotStep:
     target: TeleopTarget | None = None
     unavailable: str | None = None  # the inference back end could not answer: the policy's robots held
 
-    @property
-    def scored(self) -> bool:
-        return bool(self.scores)
-
 
 @dataclass
 class _Robot:
+    """What the controller keeps of a robot besides its control state: the policy's own execution."""
+
     generator: torch.Generator
-    mode: Mode = Mode.AUTONOMOUS
+    control: RobotControl
     history: deque = field(default_factory=deque)
     queue: deque = field(default_factory=deque)
-    hold: np.ndarray | None = None
-    teleop_left: int | None = None
-    calm: int = 0
-    cooldown: int = 0  # policy steps left on which the robot does not ask (after a hand-back)
-    watched: bool = False  # the watchdog asked in this episode
 
 
 ActionSink = Callable[[int, np.ndarray, str], None]
@@ -197,12 +189,15 @@ class Controller:
         self._robots: dict[int, _Robot] = {}
 
     # -- robots ---------------------------------------------------------------------------------------
-    def reset(self, robot_id: int, seed: int) -> None:
+    def reset(self, robot_id: int, seed: int, control: RobotControl | None = None) -> None:
         """A new episode: empty history and queue, autonomous, the signals forget the robot, and its
-        sampling noise restarts from (controller seed, ``seed``)."""
+        sampling noise restarts from (controller seed, ``seed``). control: the robot's control state
+        (the fleet keeps one per robot across episodes and policy versions; default: a new one)."""
         state = np.random.SeedSequence([self.config.seed, int(seed)]).generate_state(2, np.uint32)
         g = torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
-        self._robots[robot_id] = _Robot(g)
+        control = control if control is not None else RobotControl()
+        control.new_episode()
+        self._robots[robot_id] = _Robot(g, control)
         self.inference.reset([robot_id])
 
     def remove(self, robot_id: int) -> None:
@@ -213,21 +208,24 @@ class Controller:
     def __contains__(self, robot_id: int) -> bool:
         return robot_id in self._robots
 
+    def control(self, robot_id: int) -> RobotControl:
+        """The robot's control state: its mode and counters (``policy.hitl_state``)."""
+        return self._robot(robot_id).control
+
     def mode(self, robot_id: int) -> Mode:
-        return self._robot(robot_id).mode
+        return self._robot(robot_id).control.mode
 
     def ask(self, robot_id: int, hold: np.ndarray) -> None:
         """Puts a robot in ``waiting`` as if it had asked: it holds ``hold`` (10,)."""
         r = self._robot(robot_id)
-        r.mode, r.hold, r.teleop_left, r.calm = Mode.WAITING, np.asarray(hold, np.float64).copy(), None, 0
+        r.control.ask(hold)
         r.queue.clear()
 
     def take_over(self, robot_id: int) -> None:
         """An operator takes control; in budgeted mode the budget starts now."""
         r = self._robot(robot_id)
-        if r.mode != Mode.TELEOP:
-            r.mode, r.calm = Mode.TELEOP, 0
-            r.teleop_left = self.config.budget if self.config.hand_back == "budgeted" else None
+        if r.control.mode != Mode.TELEOP:
+            r.control.take_over(self.config.budget if self.config.hand_back == "budgeted" else None)
             r.queue.clear()
 
     def release(self, robot_id: int) -> None:
@@ -235,15 +233,10 @@ class Controller:
         history (``resume = "restart"``) or the one the takeover's frames left (``"history"``), and does
         not ask again for ``config.cooldown`` steps."""
         r = self._robot(robot_id)
-        r.mode, r.hold, r.teleop_left, r.calm = Mode.AUTONOMOUS, None, None, 0
-        r.cooldown = self.config.cooldown
+        r.control.hand_back(self.config.cooldown)
         if self.config.resume == "restart":
             r.history.clear()
         r.queue.clear()
-
-    def teleop_left(self, robot_id: int) -> int | None:
-        """Operator steps left before a budgeted hand-back (None: not under teleop, or continuous mode)."""
-        return self._robot(robot_id).teleop_left
 
     def _robot(self, robot_id: int) -> _Robot:
         try:
@@ -277,19 +270,20 @@ class Controller:
                 while len(r.history) > self.policy.config.obs_horizon:
                     r.history.popleft()
             cmd = commands.get(rid)
-            if cmd is not None and r.mode != Mode.TELEOP:
-                raise ValueError(f"robot {rid} is {r.mode}, not under teleop: it takes no operator command")
-            if r.mode == Mode.TELEOP and cmd is not None:
+            mode = r.control.mode
+            if cmd is not None and mode != Mode.TELEOP:
+                raise ValueError(f"robot {rid} is {mode}, not under teleop: it takes no operator command")
+            if mode == Mode.TELEOP and cmd is not None:
                 target = self.action_space.apply_teleop(cmd, frame.pos, frame.rot)
-                r.hold = target.action.copy()
-                out[rid] = RobotStep(rid, target.action, keys.SOURCE_OPERATOR, r.mode, command=cmd, target=target)
+                r.control.drive(target.action)
+                out[rid] = RobotStep(rid, target.action, keys.SOURCE_OPERATOR, mode, command=cmd, target=target)
                 scored.append(rid)
-            elif r.mode == Mode.AUTONOMOUS:
+            elif mode == Mode.AUTONOMOUS:
                 scored.append(rid)
                 continue
             else:  # waiting, or teleop with no command this step
-                hold = r.hold if r.hold is not None else frame.hold
-                out[rid] = RobotStep(rid, np.asarray(hold, np.float64).copy(), keys.SOURCE_HOLD, r.mode)
+                hold = r.control.hold if r.control.hold is not None else frame.hold
+                out[rid] = RobotStep(rid, np.asarray(hold, np.float64).copy(), keys.SOURCE_HOLD, mode)
             if send is not None:
                 send(rid, out[rid].action, out[rid].source)
         if scored and self.config.batch_invariant:
@@ -299,7 +293,7 @@ class Controller:
             self._score_and_decide(scored, frames, out, send)
         return {rid: out[rid] for rid in frames}
 
-    def _asks(self, r: _Robot, frame: RobotFrame, signal_wants: bool, urgent: bool = False) -> str | None:
+    def _asks(self, c: RobotControl, frame: RobotFrame, signal_wants: bool, urgent: bool = False) -> str | None:
         """Who makes an autonomous robot ask now: its signal, or the watchdog (once per episode, when
         the robot has used ``watchdog`` of its horizon); None in shadow runs, and while a cooldown runs
         unless the signal's request is ``urgent`` (the policy's next step would undo a takeover)."""
@@ -307,7 +301,7 @@ class Controller:
             return None
         if signal_wants and urgent:
             return self.asking
-        if r.cooldown > 0:
+        if c.cooldown > 0:
             return None
         if signal_wants:
             return self.asking
@@ -316,8 +310,8 @@ class Controller:
             and frame.horizon > 0
             and frame.clock >= self.config.watchdog * frame.horizon
         )
-        if late and not r.watched and not frame.success:
-            r.watched = True
+        if late and not c.watched and not frame.success:
+            c.watchdog_fired()
             return WATCHDOG
         return None
 
@@ -328,7 +322,8 @@ class Controller:
         robots = [self._robots[i] for i in ids]
         obs = torch.stack([torch.stack(list(r.history)) for r in robots])
         current = torch.as_tensor(np.stack([frames[i].hold for i in ids]), dtype=torch.float32)
-        teleop = np.array([r.mode == Mode.TELEOP for r in robots])
+        controls = [r.control for r in robots]
+        teleop = np.array([c.mode == Mode.TELEOP for c in controls])
         # a fresh chunk for robots with nothing queued (and the would-be chunk of teleoperated robots)
         need = [j for j, r in enumerate(robots) if not r.queue]
         plans = torch.empty((len(ids), cfg.action_horizon, ACTION_DIM))
@@ -348,7 +343,20 @@ class Controller:
             for j in np.flatnonzero(teleop):
                 operator[j] = torch.as_tensor(out[ids[j]].action, dtype=torch.float32)
         asks = self.asking if self.asking is not None and self.config.assistance else None
-        request = InferenceRequest(obs, current, np.asarray(ids), need, noise, plans, teleop, operator, asks)
+        request = InferenceRequest(
+            obs,
+            current,
+            np.asarray(ids),
+            need,
+            noise,
+            plans,
+            teleop,
+            operator,
+            asks,
+            engaged=np.array([c.engaged for c in controls]),
+            agreed=np.array([np.nan if c.agreed is None else float(c.agreed) for c in controls]),
+            after_takeover=np.array([c.driven for c in controls]),
+        )
         try:
             result = self.inference.run(request)
         except InferenceUnavailable as exc:
@@ -360,27 +368,27 @@ class Controller:
         scores, wants = result.scores, result.wants
         asking = wants.get(asks) if asks is not None else None
         urgent = result.urgent if asking is not None else None
-        return_after = self.config.return_after
+        agrees = scores[asks].parts.get(AGREES) if asking is not None else None
         field = next((sc.detail for sc in scores.values() if isinstance(sc.detail, UncertaintyBatch)), None)
         for j, (rid, r) in enumerate(zip(ids, robots, strict=True)):
-            frame = frames[rid]
+            frame, c = frames[rid], r.control
             if teleop[j]:
                 step = out[rid]
-                if asking is not None and return_after is not None:
-                    r.calm = r.calm + 1 if not asking[j] else 0
-                self._count_operator_step(rid, r, step)
-            elif (
-                by := self._asks(
-                    r, frame, asking is not None and bool(asking[j]), urgent is not None and bool(urgent[j])
-                )
-            ) is not None:
-                self.ask(rid, frame.hold)
-                step = RobotStep(rid, r.hold.copy(), keys.SOURCE_HOLD, r.mode, asked=True, asked_by=by)
-                step.why = result.why.get(j) if by == asks else None
+                still = bool(asking[j]) if asking is not None else None
+                agreed = bool(agrees[j] > 0) if agrees is not None and np.isfinite(agrees[j]) else None
+                self._count_operator_step(rid, r, step, True, still, agreed)
             else:
-                r.cooldown = max(0, r.cooldown - 1)
-                step = RobotStep(rid, r.queue.popleft(), keys.SOURCE_POLICY, r.mode)
-            step.mode = r.mode
+                wanted = asking is not None and bool(asking[j])
+                c.policy_step(wanted if asking is not None else None)
+                by = self._asks(c, frame, wanted, urgent is not None and bool(urgent[j]))
+                if by is not None:
+                    self.ask(rid, frame.hold)
+                    step = RobotStep(rid, c.hold.copy(), keys.SOURCE_HOLD, c.mode, asked=True, asked_by=by)
+                    step.why = result.why.get(j) if by == asks else None
+                else:
+                    c.count_down()
+                    step = RobotStep(rid, r.queue.popleft(), keys.SOURCE_POLICY, c.mode)
+            step.mode = c.mode
             step.obs, step.current = obs[j].numpy(), current[j].numpy()
             step.scores = {name: float(sc.value[j]) for name, sc in scores.items()}
             step.wants = {name: bool(w[j]) for name, w in wants.items()}
@@ -389,14 +397,19 @@ class Controller:
             if send is not None and not teleop[j]:
                 send(rid, step.action, step.source)
 
-    def _count_operator_step(self, rid: int, r: _Robot, step: RobotStep) -> None:
-        """An operator step: the budget counts it, and control goes back when the budget, or the calm
-        run of ``return_after``, is used up."""
-        if r.teleop_left is not None:
-            r.teleop_left -= 1
-        calm_enough = self.config.return_after is not None and r.calm >= self.config.return_after
-        done = (r.teleop_left is not None and r.teleop_left <= 0) or calm_enough
-        if done:
+    def _count_operator_step(
+        self,
+        rid: int,
+        r: _Robot,
+        step: RobotStep,
+        scored: bool,
+        still: bool | None = None,
+        agreed: bool | None = None,
+    ) -> None:
+        """An operator step (``scored``: the signals scored it; ``still`` / ``agreed``: the asking signal's
+        decision and the policy's agreement on it, None when not known): the control state counts it, and
+        control goes back when the budget, or the calm run of ``return_after``, is used up."""
+        if r.control.operator_step(scored, still, agreed, self.config.return_after):
             self.release(rid)
             step.returned = True
 
@@ -415,10 +428,10 @@ class Controller:
         for j, (rid, r) in enumerate(zip(ids, robots, strict=True)):
             if teleop[j]:
                 step = out[rid]
-                self._count_operator_step(rid, r, step)
+                self._count_operator_step(rid, r, step, False)
             else:
-                step = RobotStep(rid, np.asarray(frames[rid].hold, np.float64).copy(), keys.SOURCE_HOLD, r.mode)
+                step = RobotStep(rid, np.asarray(frames[rid].hold, np.float64).copy(), keys.SOURCE_HOLD, r.control.mode)
                 if send is not None:
                     send(rid, step.action, step.source)
-            step.mode, step.unavailable = r.mode, why
+            step.mode, step.unavailable = r.control.mode, why
             out[rid] = step

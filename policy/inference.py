@@ -4,14 +4,15 @@ A controller's step (``policy.controller``) makes one call per tick, ``run(reque
 it scores: the policy's action chunks for those with nothing queued, then, for the whole batch, every
 signal's score and decision (``wants_help``), the asking signal's urgent requests and the explanation
 of each robot it wants to ask for. The controller keeps everything else: the robots' histories,
-queues, modes, cooldowns and the decisions built on these answers. It stays the one control step; a
-back end only computes.
+queues, control states (``policy.hitl_state``) and the decisions built on these answers. It stays the
+one control step; a back end only computes.
 
 ``LocalInference`` computes here, on the policy and signals the controller was built with. Another
 back end computes elsewhere on its own copies, loaded from the same policy folder
-(``server.inference``: a Ray actor, on a GPU node where one is present). The signals' per-robot state
-(persistence counters, progress windows) then lives there, which is why ``reset`` (a robot's new
-episode, or its leaving) goes through the seam as well.
+(``server.inference``: a Ray actor, on a GPU node where one is present). The signals' per-robot scoring
+memory (patience runs, latches, noise) then lives there, which is why ``reset`` (a robot's new
+episode, or its leaving) goes through the seam as well; what a robot's takeovers were travels in the
+request, from its control state.
 
 A back end that cannot answer raises ``InferenceUnavailable``; the controller then holds the robots
 the policy drives for that step (operators' commands still go through) and asks again at the next.
@@ -40,7 +41,8 @@ class InferenceRequest:
     (B, action_horizon, 10), the queued robots' plans (rows in ``need`` are filled by ``run`` from
     ``noise``, (len(need), action_horizon, 10)); teleop: (B,) under an operator; operator: (B, 10) their
     actions (NaN elsewhere) or None; asking: the signal whose urgent requests and explanations are
-    wanted (None: no robot may ask this step)."""
+    wanted (None: no robot may ask this step); engaged / agreed / after_takeover: each robot's takeover
+    facts from its control state (``TriggerState``)."""
 
     obs: torch.Tensor
     current: torch.Tensor
@@ -51,6 +53,18 @@ class InferenceRequest:
     teleop: np.ndarray
     operator: torch.Tensor | None
     asking: str | None
+    engaged: np.ndarray | None = None
+    agreed: np.ndarray | None = None
+    after_takeover: np.ndarray | None = None
+
+    def trigger_state(self) -> TriggerState:
+        return TriggerState(
+            np.asarray(self.robot_ids),
+            np.asarray(self.teleop, dtype=bool).copy(),
+            self.engaged,
+            self.agreed,
+            self.after_takeover,
+        )
 
 
 @dataclass
@@ -86,7 +100,7 @@ def compute(policy: DiffusionPolicy, signals: Mapping[str, AssistanceSignal], re
             plans[req.need] = policy.predict_action_chunk(req.obs[req.need], noise=req.noise).float().cpu()
         batch = SignalInput(req.obs, req.current, req.robot_ids, action=plans, operator_action=req.operator)
         scores = {name: s.score(batch) for name, s in signals.items()}
-    state = TriggerState(np.asarray(req.robot_ids), np.asarray(req.teleop, dtype=bool).copy())
+    state = req.trigger_state()
     wants = {
         name: np.asarray(s.wants_help(scores[name], state), dtype=bool)
         for name, s in signals.items()

@@ -337,11 +337,11 @@ def test_no_module_touches_another_modules_private_members():
     )
 
 
-# A robot's mode is ``server.fleet.modes.FleetMode``: a mode written as a string literal in a comparison,
+# A robot's mode is ``policy.hitl_state.Mode``: a mode written as a string literal in a comparison,
 # an assignment to a mode, a ``mode=`` argument or a ``Literal[...]`` is a second copy of it.
 MODE_VALUES = frozenset({"autonomous", "waiting", "teleop", "paused", "done", "faulted"})
 MODE_SCOPE = ("server", "web")
-MODE_HOME = "server.fleet.modes"
+MODE_HOME = "policy.hitl_state"
 
 
 def _mode_literals(node: ast.AST) -> list[ast.Constant]:
@@ -393,14 +393,14 @@ def test_the_mode_literal_finder_sees_comparisons_assignments_and_literals():
 
 
 def test_no_mode_string_literal_in_server_or_web():
-    assert {m.value for m in __import__(MODE_HOME, fromlist=["FleetMode"]).FleetMode} == MODE_VALUES
+    assert {m.value for m in __import__(MODE_HOME, fromlist=["Mode"]).Mode} == MODE_VALUES
     found = [
         f"{name}: {c.value!r} (line {c.lineno})"
         for name, path in _sources().items()
         if name.split(".")[0] in MODE_SCOPE and name != MODE_HOME
         for c in mode_string_literals(ast.parse(path.read_text(), filename=str(path)))
     ]
-    assert not found, "a robot's mode written as a string (use server.fleet.modes.FleetMode):\n" + "\n".join(found)
+    assert not found, "a robot's mode written as a string (use policy.hitl_state.Mode):\n" + "\n".join(found)
 
 
 @pytest.mark.parametrize("package", PRODUCT)

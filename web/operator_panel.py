@@ -17,8 +17,8 @@ from concurrent.futures import Executor, Future
 import numpy as np
 import viser
 
+from policy.hitl_state import Mode
 from server.errors import ServiceError
-from server.fleet.modes import FleetMode
 from server.port import FleetPort
 from sim.env import Task
 from sim.registry import make_task
@@ -350,7 +350,7 @@ class OperatorPanel:
             held_now = {rid for rid, r in requests.items() if r.holder == me}
             for rid in sorted(self._held - held_now - self._released):
                 view = snap.robots.get(rid)
-                if rid in requests or (view is not None and view.mode == FleetMode.WAITING):
+                if rid in requests or (view is not None and view.mode == Mode.WAITING):
                     self._notify(
                         f"Lease lost on robot {rid}",
                         "Your lease ran out; the robot holds and waits in the queue.",
@@ -359,7 +359,7 @@ class OperatorPanel:
             # held robots come from snapshots only (a claim after this tick's snapshot shows up at the next);
             # a hand-back is remembered until the snapshots stop showing the robot as held
             self._held, self._released = held_now, self._released & held_now
-        faulted = {rid for rid, v in snap.robots.items() if v.mode == FleetMode.FAULTED}
+        faulted = {rid for rid, v in snap.robots.items() if v.mode == Mode.FAULTED}
         for rid in sorted(faulted - self._faulted):
             self._notify(f"Robot {rid} faulted", snap.robots[rid].fault or "its worker stopped", "red")
         self._faulted = faulted
@@ -409,7 +409,7 @@ class OperatorPanel:
         rid = self.robot_id
         view = snap.robots[rid]
         req = snap.request(rid)
-        holding = req is not None and req.holder == self.identity.name and view.mode == FleetMode.TELEOP
+        holding = req is not None and req.holder == self.identity.name and view.mode == Mode.TELEOP
         if view.task not in self._tasks:
             self._tasks[view.task] = make_task(view.task)  # no simulation: it builds one only when stepped
         task = self._tasks[view.task]

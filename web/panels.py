@@ -15,20 +15,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from policy.hitl_state import Mode
 from policy.signals.base import SignalError
 from server.fleet.assistance import AssistanceRequest
-from server.fleet.modes import FleetMode
 from server.fleet.robot import RobotView
 from server.registry import LineageSummary
 from sim.env import Task
 
 MODE_BADGES = {  # plain glyphs only: the console's font has no emoji
-    FleetMode.AUTONOMOUS: "autonomous",
-    FleetMode.WAITING: "**⚠ waiting**",
-    FleetMode.TELEOP: "**teleop**",
-    FleetMode.PAUSED: "paused",
-    FleetMode.DONE: "episode done",
-    FleetMode.FAULTED: "**⚠ faulted**",
+    Mode.AUTONOMOUS: "autonomous",
+    Mode.WAITING: "**⚠ waiting**",
+    Mode.TELEOP: "**teleop**",
+    Mode.PAUSED: "paused",
+    Mode.DONE: "episode done",
+    Mode.FAULTED: "**⚠ faulted**",
 }
 KEY_MAP = (
     ("I / K", "+x / −x (away from / towards the robot base)"),
@@ -99,11 +99,11 @@ def _cell(text: str, most: int = 60) -> str:
 def why_waits(view: RobotView, req: AssistanceRequest | None) -> str:
     """Why the robot is not working alone now: its open request's reason (the queue's words), its fault, or
     that it is paused; empty while it works alone."""
-    if view.mode == FleetMode.FAULTED:
+    if view.mode == Mode.FAULTED:
         return f"fault: {view.fault or 'its worker stopped'}"
     if req is not None:
         return req.reason
-    if view.mode == FleetMode.PAUSED:
+    if view.mode == Mode.PAUSED:
         return "paused by an admin"
     return ""
 
@@ -231,7 +231,7 @@ def robot_markdown(view: RobotView, req: AssistanceRequest | None, now: float, m
             left = max(0.0, (req.lease_until or now) - now)
             lease = f" · held by **{'you' if req.holder == me else plain(req.holder)}** (lease {left:.0f} s)"
         lines.append(f"**Asked:** {req.reason}{lease}")
-    if view.mode == FleetMode.TELEOP and view.teleop_left is not None:
+    if view.mode == Mode.TELEOP and view.teleop_left is not None:
         lines.append(f"**Budget:** {view.teleop_left} operator step{'s' if view.teleop_left != 1 else ''} left")
     if view.fault:
         lines.append(f"**Fault:** {view.fault}")

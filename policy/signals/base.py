@@ -23,6 +23,10 @@ import torch
 
 from policy.diffusion_policy import DiffusionPolicy
 
+# the score part in which an asking signal says whether the policy, scored in shadow on an operator's step,
+# agrees with it (1 / 0; NaN where no operator drives the robot); the robot's control state keeps it
+AGREES = "agrees"
+
 
 class SignalError(ValueError):
     """A signal cannot be built, calibrated or loaded as asked; the message says why."""
@@ -81,15 +85,32 @@ class Scores:
 
 @dataclass
 class TriggerState:
-    """What the trigger rule may know beyond the scores: robot ids and which robots an operator drives."""
+    """What the trigger rule may know beyond the scores, per robot: its id, whether an operator drives it,
+    and the takeover facts its control state keeps (``policy.hitl_state.RobotControl``), so that no
+    signal keeps a copy of a robot's mode. engaged: the asking signal wanted help and no operator step
+    has settled it since; agreed: 1 / 0 where the policy agreed / disagreed with the operator's last step
+    (NaN: no operator step since the robot's last policy step); after_takeover: an operator drove the
+    robot since its last policy step. Left out, a robot is autonomous with no takeover behind it."""
 
     robot_ids: np.ndarray
-    teleop: np.ndarray  # (B,) bool
+    teleop: np.ndarray | None = None  # (B,) bool
+    engaged: np.ndarray | None = None  # (B,) bool
+    agreed: np.ndarray | None = None  # (B,) float
+    after_takeover: np.ndarray | None = None  # (B,) bool
 
-    @classmethod
-    def autonomous(cls, robot_ids: Iterable[int]) -> TriggerState:
-        ids = np.asarray(list(robot_ids), dtype=np.int64)
-        return cls(ids, np.zeros(len(ids), dtype=bool))
+    def __post_init__(self) -> None:
+        ids = self.robot_ids
+        self.robot_ids = np.asarray(ids if isinstance(ids, np.ndarray) else list(ids), dtype=np.int64)
+        b = len(self.robot_ids)
+        self.teleop = np.zeros(b, bool) if self.teleop is None else np.asarray(self.teleop, dtype=bool)
+        self.engaged = np.zeros(b, bool) if self.engaged is None else np.asarray(self.engaged, dtype=bool)
+        self.agreed = np.full(b, np.nan) if self.agreed is None else np.asarray(self.agreed, dtype=np.float64)
+        self.after_takeover = (
+            np.zeros(b, bool) if self.after_takeover is None else np.asarray(self.after_takeover, dtype=bool)
+        )
+        for name in ("teleop", "engaged", "agreed", "after_takeover"):
+            if getattr(self, name).shape != (b,):
+                raise ValueError(f"TriggerState.{name} must have shape ({b},), got {getattr(self, name).shape}")
 
 
 @dataclass

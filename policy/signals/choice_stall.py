@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from policy.signals.base import (
+    AGREES,
     SCENES,
     AssistanceSignal,
     CalibrationData,
@@ -142,8 +143,6 @@ class ChoiceStallSignal(AssistanceSignal):
         self.choice = ChoiceSignal(policy, self.config.choice_config())
         self.stall = StallSignal(policy, self.config.stall_config())
         self._new = PerRobot(bool)  # the robot's scene this episode is outside the demonstrations' range
-        self._engaged = PerRobot(bool)  # it asked, and no operator's step has yet settled the request
-        self._agreed = PerRobot(lambda: None)  # on the last operator step: did the policy agree (None: none yet)
         self._agree_now: tuple[np.ndarray, np.ndarray] | None = None  # the scored batch: ids, agreement
         self._carry_on: np.ndarray | None = None  # the last wants_help: requests that carry on a takeover
         self._parts: tuple[np.ndarray, Scores] | None = None  # the scored batch: robot ids, stall's scores
@@ -153,8 +152,7 @@ class ChoiceStallSignal(AssistanceSignal):
         ids = self._ids_for(robot_ids)
         self.choice.reset(ids)
         self.stall.reset(ids)
-        for state in (self._new, self._engaged, self._agreed):
-            state.reset(ids)
+        self._new.reset(ids)
 
     def _thresholds(self) -> tuple[float, float]:
         """Each half's own threshold (1, 1 before calibration: the scores in their own units)."""
@@ -186,7 +184,7 @@ class ChoiceStallSignal(AssistanceSignal):
         t_choice, t_stall = self._thresholds()
         over_choice, over_stall = over(choice, t_choice), over(stall.value, t_stall)
         self._parts = (batch.robot_ids.copy(), stall)
-        agree = np.zeros(len(batch), dtype=bool)
+        agree = np.full(len(batch), np.nan)  # NaN where no operator drives the robot
         if batch.operator_action is not None:  # the operator's robots: does the policy's plan go their way?
             op = batch.operator_action.double().numpy()
             driven = np.isfinite(op).all(axis=-1)
@@ -195,7 +193,7 @@ class ChoiceStallSignal(AssistanceSignal):
                 cfg = self.config
                 agree[driven] = agrees(
                     plan[driven], op[driven], batch.current.double().numpy()[driven], cfg.agree_cos, cfg.agree_still
-                )
+                ).astype(np.float64)
         self._agree_now = (batch.robot_ids.copy(), agree)
         parts = {
             "new_scene": new.astype(np.float64),
@@ -203,6 +201,7 @@ class ChoiceStallSignal(AssistanceSignal):
             "choice": over_choice,
             "choice_m": choice,
             "stall": over_stall,
+            AGREES: agree,
         }
         return Scores(np.where(new, over_stall, over_choice), parts)
 
@@ -224,29 +223,24 @@ class ChoiceStallSignal(AssistanceSignal):
         after request, until the policy, scored in shadow on the operator's step, agrees with them
         (``agrees``). On the operator's steps it wants help while the policy disagrees (what a controller's
         ``return_after`` counts); on the first policy step after a takeover it asks again when the policy
-        did not agree with the operator's last step. Returns (wants help, which of them carry on a
-        takeover)."""
+        did not agree with the operator's last step. The request's state (engaged, the last agreement) is
+        the robot's control state's (``state``); this signal keeps none. Returns (wants help, which of them
+        carry on a takeover)."""
         if self._agree_now is None or not np.array_equal(self._agree_now[0], state.robot_ids):
             raise SignalError("choice-stall: wants_help must follow score on the same robots")
         agree = self._agree_now[1]
         out, carry_on = np.asarray(wants, dtype=bool).copy(), np.zeros(len(wants), dtype=bool)
-        for j, rid in enumerate(int(r) for r in state.robot_ids):
-            engaged = self._engaged.get(rid)
-            if state.teleop[j]:
-                self._agreed.set(rid, bool(agree[j]))
-                if engaged:
-                    out[j] = not agree[j]
-                continue
-            agreed = self._agreed.get(rid)
-            self._agreed.set(rid, None)
-            if agreed is not None and engaged:  # the first policy step after a takeover
-                if agreed:  # settled: handed back for good (a new request needs the ask level again)
-                    self.choice.release([rid])
-                    engaged = out[j] = False
-                else:
-                    carry_on[j] = not wants[j]
-                    out[j] = True
-            self._engaged.set(rid, engaged or bool(out[j]))
+        engaged, agreed = state.engaged, state.agreed
+        driven = state.teleop & engaged
+        out[driven] = ~(agree[driven] > 0)
+        after = ~state.teleop & engaged & np.isfinite(agreed)  # the first policy step after a takeover
+        settled = after & (agreed > 0)  # handed back for good (a new request needs the ask level again)
+        if settled.any():
+            self.choice.release(state.robot_ids[settled])
+            out[settled] = False
+        unsettled = after & ~(agreed > 0)
+        carry_on[unsettled] = ~np.asarray(wants, dtype=bool)[unsettled]
+        out[unsettled] = True
         return out, carry_on
 
     def urgent(self, state: TriggerState) -> np.ndarray:

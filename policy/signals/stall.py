@@ -118,7 +118,6 @@ class StallSignal(AssistanceSignal):
         super().__init__(policy, config)
         self._run = Patience(self.config.patience)
         self._asked_at = PerRobot(lambda: None)  # where the robot stood when it last asked on its own
-        self._taken_over = PerRobot(bool)  # an operator drove it since its last policy step
         self._grasp_kept = PerRobot(bool)  # the gripper is closed as an operator left it
         self._closed_for = PerRobot(int)  # consecutive scored steps with the gripper closed
         self._where: tuple[np.ndarray, ...] | None = None  # the scored batch's geometry and gripper
@@ -126,7 +125,7 @@ class StallSignal(AssistanceSignal):
 
     def reset(self, robot_ids: Iterable[int] | None = None) -> None:
         ids = self._ids_for(robot_ids)
-        for state in (self._run, self._asked_at, self._taken_over, self._grasp_kept, self._closed_for):
+        for state in (self._run, self._asked_at, self._grasp_kept, self._closed_for):
             state.reset(ids)
 
     def _parts(self, obs: torch.Tensor, current: torch.Tensor, action: torch.Tensor | None) -> dict[str, np.ndarray]:
@@ -182,11 +181,9 @@ class StallSignal(AssistanceSignal):
         opened = np.asarray(scores.parts["open"]) > 0
         for j, rid in enumerate(int(r) for r in state.robot_ids):
             if state.teleop[j]:
-                self._taken_over.set(rid, True)
                 continue
             asked = self._asked_at.get(rid)
-            if self._taken_over.get(rid):
-                self._taken_over.set(rid, False)
+            if state.after_takeover[j]:  # an operator drove it since its last policy step
                 self._grasp_kept.set(rid, bool(closed[j]))
                 if opened[j] and asked is not None and self._heads_back(now[j], plan[j], asked):
                     out[j] = urgent[j] = True

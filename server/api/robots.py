@@ -219,7 +219,7 @@ async def heartbeat(robot_id: Id, fleet: FleetDep, who: Operator) -> AssistanceR
 
 @router.post("/{robot_id}/release", response_model=RobotSummary, responses=_HOLDER, tags=ASSISTANCE)
 async def release(robot_id: Id, fleet: FleetDep, who: Operator) -> RobotSummary:
-    """Hand the robot back to its policy (at the fleet's next tick; it is shown handed back at once)."""
+    """Hand the robot back to its policy at the fleet's next tick; your commands are refused from now on."""
     await call_port(fleet, fleet.release, robot_id, who.name)
     return summary(fleet.view(robot_id))
 

@@ -8,8 +8,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, ValidationInfo, field_validator
 
+from policy.hitl_state import Mode
 from server.db import NOTE_MAX
-from server.fleet.modes import FleetMode
 from sim.registry import TASKS
 from sim.spaces import TeleopCommand
 
@@ -25,7 +25,7 @@ ID_MAX = 2**31 - 1
 Id = Annotated[int, Field(ge=0, le=ID_MAX)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Quaternion = Annotated[list[float], Field(min_length=4, max_length=4, description="x, y, z, w")]
-RobotMode = Literal[tuple(m.value for m in FleetMode)]  # the same enum in the schema as a plain string
+RobotMode = Literal[tuple(m.value for m in Mode)]  # the same enum in the schema as a plain string
 
 
 class FieldError(BaseModel):

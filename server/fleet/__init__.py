@@ -2,7 +2,7 @@
 
 ``Fleet`` (``server.fleet.fleet``) puts the parts together and is what the API and the console use, through
 ``server.port.FleetPort``. Import each part from its module: the package imports nothing, so reading
-``FleetMode`` costs no torch. The parts, from the one that composes them down to the records they share
+``Mode`` costs no torch. The parts, from the one that composes them down to the records they share
 (no import circle among them, type-only imports included: ``tests/test_layout.py``):
 
 - ``fleet``: builds the robots and composes the parts below; starts and stops the threads;
@@ -10,6 +10,6 @@
 - ``lifecycle``: a robot's worker, episodes and takeovers, the transitions both of them make;
 - ``policy_swap`` (which policy version drives a robot), ``recording`` (what is written), ``metrics`` (the
   figures and the operators' clock), ``assistance`` (the queue and its leases);
-- ``robot`` (a robot's record and published view), over ``slots`` (a loaded policy version), ``modes``
-  (``FleetMode``), ``handovers`` and ``commands`` (the mailboxes an API call leaves for the next tick).
+- ``robot`` (a robot's record and published view), over ``slots`` (a loaded policy version), ``inbox`` and
+  ``commands`` (what an API call leaves for the loop's next tick, and how commands compose).
 """

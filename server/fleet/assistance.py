@@ -111,6 +111,7 @@ class AssistanceRequest:
     claimed_at: float | None = None
     requeued: int = 0
     expired_holder: str | None = None  # who held the lease that ran out last
+    released: bool = False  # its holder handed the robot back; the loop closes it at its next tick
     signal: str | None = None
     asked_at_step: int | None = None
     paper_u: float | None = None
@@ -147,12 +148,6 @@ class AssistanceQueue:
         self._ids = itertools.count(1)
         self._by_robot: dict[int, AssistanceRequest] = {}
         self.waits: list[float] = []  # seconds from request to claim, for metrics
-
-    def open(
-        self, robot_id: int, uncertainty: float, threshold: float, reason: str, now: float | None = None
-    ) -> AssistanceRequest:
-        """The robot's open request, or a new one opened at ``now`` (default: ``time.monotonic()``)."""
-        return self.ask(robot_id, AskRecord(None, uncertainty, threshold, reason), now)
 
     def ask(self, robot_id: int, record: AskRecord, now: float | None = None) -> AssistanceRequest:
         """The robot's open request, or a new one for ``record`` opened at ``now`` (default:
@@ -197,6 +192,8 @@ class AssistanceQueue:
                     409,
                     f"robot {robot_id} has no open assistance request: it is neither waiting for help nor under teleop",
                 )
+            if req.released:
+                raise ServiceError(409, f"robot {robot_id} is being handed back to its policy")
             if req.holder is not None and req.holder != operator and req.lease_until and req.lease_until > now:
                 raise ServiceError(409, f"robot {robot_id} is already controlled by another operator")
             if req.holder is None:
@@ -214,6 +211,14 @@ class AssistanceQueue:
         with self._lock:
             return self._holder_check(robot_id, operator)
 
+    def release(self, robot_id: int, operator: str) -> AssistanceRequest:
+        """``operator`` hands the robot back: from now on nothing of theirs is accepted for it, and the
+        loop closes the request when it applies the hand-back."""
+        with self._lock:
+            req = self._holder_check(robot_id, operator)
+            req.released = True
+            return req
+
     def _holder_check(self, robot_id: int, operator: str) -> AssistanceRequest:
         req = self._by_robot.get(robot_id)
         if req is None:
@@ -222,6 +227,8 @@ class AssistanceQueue:
             )
         if req.holder != operator:
             raise ServiceError(409, f"robot {robot_id} is not controlled by you: claim it first")
+        if req.released:
+            raise ServiceError(409, f"robot {robot_id} is being handed back to its policy")
         return req
 
     def close(self, robot_id: int) -> AssistanceRequest | None:
@@ -234,7 +241,8 @@ class AssistanceQueue:
         out = []
         with self._lock:
             for req in self._by_robot.values():
-                if req.holder is not None and req.lease_until is not None and req.lease_until <= now:
+                held = req.holder is not None and not req.released
+                if held and req.lease_until is not None and req.lease_until <= now:
                     req.expired_holder, req.holder, req.lease_until = req.holder, None, None
                     req.requeued += 1
                     out.append(req)

@@ -29,7 +29,7 @@ from sqlalchemy.orm import sessionmaker
 from server import registry
 from server.cameras import CameraFeed, CameraImages, CameraView
 from server.fleet.assistance import AssistanceQueue, AssistanceRequest
-from server.fleet.commands import CommandMailbox
+from server.fleet.inbox import Inbox
 from server.fleet.lifecycle import Lifecycle
 from server.fleet.loop import ControlLoop
 from server.fleet.metrics import MetricsReport, OperatorClock, report
@@ -66,7 +66,9 @@ class Fleet:
         self.worker_factory = workers if workers is not None else WORKERS[settings.worker](settings)
         self.lifecycle = Lifecycle(self.recorder, self.queue, self.policies, self.worker_factory, self.operator_clock)
         self.loop = ControlLoop(settings, self.robots, self.lock, self.queue, self.recorder, self.lifecycle)
-        self.operators = OperatorActions(self.robots, self.lock, self.queue, self.lifecycle, self.operator_clock)
+        self.operators = OperatorActions(
+            self.robots, self.lock, self.queue, self.lifecycle, self.operator_clock, lambda: self.loop.running
+        )
         self.cameras = CameraFeed(
             self._camera_frame,
             self._record_images,
@@ -97,7 +99,7 @@ class Fleet:
             slot = self.policies.serve(group.policy_dir, group.task)
             limits = make_task(group.task).action_space.limits
             for _ in range(group.count):
-                self.robots[rid] = Robot(rid, group.task, slot, self.settings.seed + 1000 * rid, CommandMailbox(limits))
+                self.robots[rid] = Robot(rid, group.task, slot, self.settings.seed + 1000 * rid, Inbox(limits))
                 rid += 1
 
     def spawn_workers(self) -> None:
@@ -213,9 +215,6 @@ class Fleet:
         """The registry's lineages with their active version and last fine-tuning job, at most
         ``max_age`` seconds old."""
         return self.policies.lineages(max_age)
-
-    def served_lineages(self) -> set[str]:
-        return self.policies.served_lineages()
 
     def sync_policies(self) -> list[int]:
         """Assigns each served lineage the registry's active version (loaded first); returns the versions

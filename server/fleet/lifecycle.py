@@ -14,9 +14,10 @@ from __future__ import annotations
 import logging
 import time
 
+from policy.hitl_state import Mode
 from server.fleet.assistance import AskRecord, AssistanceQueue
+from server.fleet.inbox import Ticket
 from server.fleet.metrics import OperatorClock
-from server.fleet.modes import FleetMode
 from server.fleet.policy_swap import PolicySwap
 from server.fleet.recording import Recorder
 from server.fleet.robot import Robot
@@ -58,7 +59,7 @@ class Lifecycle:
         log.warning("robot %d faulted: %s", robot.id, why.splitlines()[-1] if why else why)
         self.interrupt(robot, "faulted", "worker-fault")
         robot.slot.controller.remove(robot.id)
-        robot.set_mode(FleetMode.FAULTED)
+        robot.control.fault()
         robot.fault, robot.fresh = why, False
         if robot.worker is not None:
             robot.worker.kill()
@@ -70,7 +71,7 @@ class Lifecycle:
         """A faulted robot whose backoff has run out gets a new worker."""
         if robot.restart_at is not None and time.monotonic() >= robot.restart_at:
             robot.fault, robot.restart_at = None, None
-            robot.set_mode(FleetMode.AUTONOMOUS)
+            robot.control.restart()
             self.spawn(robot)
 
     # -- episodes ---------------------------------------------------------------------------------------
@@ -78,13 +79,11 @@ class Lifecycle:
         """The next episode, on the policy version assigned to the robot's lineage (hot swap)."""
         self.policies.move_to_assigned(robot)
         robot.seed += 1
-        robot.slot.controller.reset(robot.id, robot.seed)
+        robot.slot.controller.reset(robot.id, robot.seed, robot.control)  # autonomous (a pause holds on)
         robot.steps = robot.assisted_steps = robot.events = 0
         robot.timeline.clear()  # a plot of this episode's steps
-        robot.teleop_left = None
         robot.fresh = False  # the last frame stays on view until the reset's arrives
-        robot.commands.clear()
-        robot.set_mode(FleetMode.AUTONOMOUS)
+        robot.inbox.drop_commands()
         robot.episode_id = self.recorder.open_episode(robot)
         try:
             robot.worker.request_reset(robot.seed)
@@ -96,7 +95,7 @@ class Lifecycle:
         outcome = "success" if frame.success else "timeout"
         self.recorder.close_episode_file(robot, frame.success, frame.t, outcome)
         self.end_takeover(robot, "episode-ended")  # a takeover that reached success (a timeout waits for hand-back)
-        robot.set_mode(FleetMode.DONE)
+        robot.control.episode_ended()
         robot.episodes_done += 1
         robot.successes += int(frame.success)
         self.recorder.finish_episode(robot, outcome, frame.clock)
@@ -108,26 +107,27 @@ class Lifecycle:
         self.end_takeover(robot, ended_by)
         self.recorder.close_episode_file(robot, None, robot.steps, outcome)
         self.recorder.finish_episode(robot, outcome)
-        robot.commands.clear()
+        robot.inbox.drop_commands()
 
     # -- takeovers --------------------------------------------------------------------------------------
-    def apply_handovers(self, robot: Robot) -> None:
-        """The robot's claims and releases accepted since they were last applied, in order, each only if
-        the queue still has its operator holding the robot. By the loop before it steps, and by every
-        other action that changes the robot before it does (a claim accepted before a reset is a
-        takeover that the reset ends)."""
-        handovers = robot.handovers.pending()
-        for h in handovers:
-            req = self.queue.get(robot.id)
-            if req is None or req.holder != h.operator:  # the request ended or the lease ran out meanwhile
+    def apply_inbox(self, robot: Robot) -> None:
+        """What the API asked of the robot since the loop last looked (``server.fleet.inbox``), in order:
+        admin actions, and claims and releases each only if the queue still has its operator holding the
+        robot. By the loop at the start of a tick (fleet lock held), before it steps anyone."""
+        items = robot.inbox.take()
+        for item in items:
+            if isinstance(item, Ticket):
+                item.apply()
                 continue
-            if h.kind == "claim":
-                self.take_over(robot, h.operator, req.ask)
+            req = self.queue.get(robot.id)
+            if req is None or req.holder != item.operator:  # the request ended or the lease ran out meanwhile
+                continue
+            if item.kind == "claim":
+                self.take_over(robot, item.operator, req.ask)
             else:
                 self.hand_back(robot)
-        if handovers:
+        if items:
             robot.publish()
-            robot.handovers.applied(len(handovers))
 
     def take_over(self, robot: Robot, operator: str, ask: AskRecord) -> None:
         """``operator`` holds the robot's request (``ask``: its record): a waiting robot goes under their
@@ -136,12 +136,10 @@ class Lifecycle:
         if holder is not None and holder != operator:
             # the previous holder's lease ran out before a tick expired it: their takeover is over
             self.recorder.close_takeover(robot, "lease-expired")
-            if robot.mode == FleetMode.TELEOP:
+            if robot.mode == Mode.TELEOP:
                 self.recorder.open_takeover(robot, operator, ask)
-        if robot.mode == FleetMode.WAITING:
+        if robot.mode == Mode.WAITING:
             robot.slot.controller.take_over(robot.id)
-            robot.teleop_left = robot.slot.controller.teleop_left(robot.id)
-            robot.set_mode(FleetMode.TELEOP)
             if self.recorder.takeover_operator(robot) is None:
                 self.recorder.open_takeover(robot, operator, ask)
 
@@ -151,8 +149,7 @@ class Lifecycle:
         self.end_takeover(robot, "hand-back")
         if robot.id in robot.slot.controller:
             robot.slot.controller.release(robot.id)
-        robot.commands.clear()
-        robot.set_mode(FleetMode.AUTONOMOUS)
+        robot.inbox.drop_commands()
 
     def end_takeover(self, robot: Robot, ended_by: str) -> None:
         """Closes the takeover's recording and request, and books the operator's time."""
@@ -171,8 +168,7 @@ class Lifecycle:
             if robot is None:
                 continue
             self.recorder.close_takeover(robot, "lease-expired")  # paused or not: the takeover is over
-            robot.commands.clear()
-            if robot.mode == FleetMode.TELEOP and robot.frame is not None:
+            robot.inbox.drop_commands()
+            if robot.mode == Mode.TELEOP and robot.frame is not None:
                 # (past the horizon, the next frame ends the episode: a timeout waited for this)
                 robot.slot.controller.ask(robot.id, robot.frame.hold)
-                robot.set_mode(FleetMode.WAITING)

@@ -22,10 +22,10 @@ from collections import deque
 
 import numpy as np
 
-from policy.controller import Mode, RobotStep, ends_episode
+from policy.controller import RobotStep, ends_episode
+from policy.hitl_state import Mode
 from server.fleet.assistance import AskRecord, AssistanceQueue
 from server.fleet.lifecycle import Lifecycle
-from server.fleet.modes import FleetMode
 from server.fleet.recording import Recorder
 from server.fleet.robot import Robot, TimelinePoint
 from server.settings import Settings
@@ -39,7 +39,7 @@ log = logging.getLogger("hitl.fleet")
 # answered made ticks of ~5 of 16 robots, and DDIM's ten network calls per tick cost nearly as much for 5
 # robots as for 16.
 FREE_RUN_BATCH = 0.5
-NOT_STEPPED = (FleetMode.PAUSED, FleetMode.FAULTED)
+NOT_STEPPED = (Mode.PAUSED, Mode.FAULTED)
 
 
 class ControlLoop:
@@ -68,18 +68,22 @@ class ControlLoop:
         self.tick_periods: deque = deque(maxlen=2000)
         self.loop_cpu_seconds = 0.0
         self.inference_holds = 0
+        self.running = False  # the loop thread runs: it applies the robots' inboxes (``server.fleet.inbox``)
 
     def run(self, stop: threading.Event) -> None:
         """The loop thread: ticks until ``stop`` is set, at ``control_hz`` or free-running."""
         period = 1.0 / self.settings.control_hz if self.settings.control_hz > 0 else 0.0
         last = time.monotonic()
+        for r in self.robots.values():  # from now on only this thread changes a robot's control state
+            r.control.bind_writer(threading.current_thread())
+        self.running = True
         try:
             while not stop.is_set():
                 start = time.monotonic()
                 if not period:  # free-running: block until enough workers answer (a batch), never spin
                     workers = [r.worker for r in self.robots.values() if r.worker is not None]
                     teleop = [
-                        r.worker for r in self.robots.values() if r.worker is not None and r.mode == FleetMode.TELEOP
+                        r.worker for r in self.robots.values() if r.worker is not None and r.mode == Mode.TELEOP
                     ]
                     wait_any(workers, 0.05, math.ceil(FREE_RUN_BATCH * sum(w.busy for w in workers)), teleop)
                 cpu = time.thread_time()
@@ -99,6 +103,9 @@ class ControlLoop:
                 elif not worked:  # nothing to step (all paused or restarting): do not spin
                     stop.wait(0.01)
         finally:
+            self.running = False
+            for r in self.robots.values():
+                r.control.bind_writer(None)
             log.info("control loop stopped after %d ticks", self.ticks)
 
     def tick(self) -> bool:
@@ -106,10 +113,10 @@ class ControlLoop:
         counted)."""
         self.lifecycle.expire_leases(self.robots)
         for r in self.robots.values():
-            self.lifecycle.apply_handovers(r)  # claims and releases since the last tick (``server.fleet.handovers``)
+            self.lifecycle.apply_inbox(r)  # claims, releases and admin actions since the last tick
             self.recorder.flush_takeover(r)  # nothing older than a second is only in memory
             if r.worker is not None:
-                r.worker.prioritize(Priority.CONTROL if r.mode == FleetMode.TELEOP else Priority.BACKGROUND)
+                r.worker.prioritize(Priority.CONTROL if r.mode == Mode.TELEOP else Priority.BACKGROUND)
             self._collect(r)
         ready = [r for r in self.robots.values() if r.fresh and r.mode not in NOT_STEPPED]
         if ready:
@@ -125,7 +132,7 @@ class ControlLoop:
 
     def _collect(self, robot: Robot) -> None:
         """Takes the worker's answer if there is one (faults and restarts happen here)."""
-        if robot.mode == FleetMode.FAULTED:
+        if robot.mode == Mode.FAULTED:
             self.lifecycle.restart_if_due(robot)
             return
         if robot.worker is None:
@@ -139,9 +146,7 @@ class ControlLoop:
             return
         robot.frame = frame
         self.recorder.frame_arrived(robot, frame)
-        controller = robot.slot.controller
-        mode = controller.mode(robot.id) if robot.id in controller else Mode.AUTONOMOUS
-        if frame.t > 0 and ends_episode(frame, mode):
+        if frame.t > 0 and ends_episode(frame, robot.control.stepped_mode):
             self.lifecycle.end_episode(robot, frame)
         else:
             robot.fresh = True
@@ -149,14 +154,15 @@ class ControlLoop:
     def _step_slot(self, robots: list[Robot]) -> None:
         slot = robots[0].slot
         frames = {r.id: r.frame for r in robots}
-        taken = {r.id: t for r in robots if r.mode == FleetMode.TELEOP and (t := r.commands.take()) is not None}
+        taken = {r.id: t for r in robots if r.mode == Mode.TELEOP and (t := r.inbox.take_command()) is not None}
         commands = {rid: cmd for rid, (cmd, _, _) in taken.items()}
         # simulated robots that only hold while they wait for their operator (or for a command) are not
         # stepped when ``freeze_idle``: their scene waits with them, and their frame stays current
         idle = set()
         if self.settings.freeze_idle:
-            modes = {r.id: slot.controller.mode(r.id) for r in robots if r.id in slot.controller}
-            idle = {rid for rid, m in modes.items() if m == Mode.WAITING or (m == Mode.TELEOP and rid not in commands)}
+            idle = {
+                r.id for r in robots if r.mode == Mode.WAITING or (r.mode == Mode.TELEOP and r.id not in commands)
+            }
 
         def send(rid: int, action: np.ndarray, source: str) -> None:
             if rid in idle:
@@ -181,7 +187,7 @@ class ControlLoop:
             if not self.inference_holds:
                 log.warning("robot %d held: %s; retrying at every tick", robot.id, step.unavailable)
             self.inference_holds += 1
-        elif self.inference_holds and robot.mode == FleetMode.AUTONOMOUS:
+        elif self.inference_holds and robot.mode == Mode.AUTONOMOUS:
             log.info("inference answers again after %d held robot-steps", self.inference_holds)
             self.inference_holds = 0
         controller = robot.slot.controller
@@ -196,8 +202,6 @@ class ControlLoop:
         if step.source == keys.SOURCE_OPERATOR:
             robot.assisted_steps += 1
             self.recorder.takeover_step(robot, robot.frame, step)
-        robot.set_mode(FleetMode.of(step.mode))
-        robot.teleop_left = controller.teleop_left(robot.id) if robot.id in controller else None
         if robot.frame is not None:
             u = step.uncertainty.U if step.uncertainty is not None else None
             robot.record(TimelinePoint(robot.frame.clock, robot.mode, step.scores.get(asking or ""), u))

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from policy.hitl_state import MODES
 from server.fleet.assistance import AssistanceQueue
-from server.fleet.modes import MODES
 from server.fleet.recording import EpisodeTotals
 from server.fleet.robot import RobotView
 

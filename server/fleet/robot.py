@@ -1,10 +1,11 @@
 """A fleet robot: its record in the fleet (``Robot``) and the copy the API reads (``RobotView``).
 
-``Robot`` holds what the fleet knows of one robot: its worker, policy slot, episode, counters and mode.
-The mode is written in one place, ``Robot.set_mode`` (``pause`` and ``resume`` for an admin's pause):
-a paused robot stays paused through the transitions the loop makes meanwhile, and resumes into the
-mode they left it in. ``Robot.ask`` is the record of the robot's open assistance request, the queue's
-own (``server.fleet.assistance.AskRecord``): set where the request is opened, cleared where it closes
+``Robot`` holds what the fleet knows of one robot: its worker, policy slot, episode and counters. Its
+mode and the hand-back rule's counters are its ``control`` (``policy.hitl_state.RobotControl``), the one
+record the controller steps too (``Controller.reset`` is given it): a paused robot stays paused through
+the transitions the loop makes meanwhile, and resumes into the mode they left it in. ``Robot.ask`` is
+the record of the robot's open assistance request, the queue's own (``server.fleet.assistance.AskRecord``):
+set where the request is opened, cleared where it closes
 (``server.fleet.lifecycle.Lifecycle.end_takeover``). The recorder's per-robot state (open files, the
 step waiting for its outcome) is the recorder's own (``server.fleet.recording``).
 """
@@ -14,11 +15,10 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field, fields, replace
 
+from policy.hitl_state import Mode, RobotControl
 from policy.uncertainty import UncertaintyResult
 from server.fleet.assistance import AskRecord
-from server.fleet.commands import CommandMailbox
-from server.fleet.handovers import HandoverMailbox
-from server.fleet.modes import FleetMode
+from server.fleet.inbox import Inbox
 from server.fleet.slots import PolicySlot
 from server.workers import RobotWorker
 from sim.frame import RobotFrame
@@ -35,7 +35,7 @@ class TimelinePoint:
     ``Robot.record`` from the modes)."""
 
     t: int
-    mode: FleetMode
+    mode: Mode
     score: float | None
     U: float | None
     asked: bool = False
@@ -53,7 +53,7 @@ class RobotView:
     task: str
     slot: PolicySlot
     seed: int
-    mode: FleetMode
+    mode: Mode
     episode_id: int | None
     steps: int
     u_history: tuple
@@ -79,7 +79,7 @@ class Robot:
     task: str
     slot: PolicySlot
     seed: int
-    commands: CommandMailbox
+    inbox: Inbox  # what the API asked, for the loop's next tick (``server.fleet.inbox``)
     worker: RobotWorker | None = None
     frame: RobotFrame | None = None
     fresh: bool = False  # ``frame`` arrived since the robot's last step
@@ -95,7 +95,6 @@ class Robot:
     scores: dict = field(default_factory=dict)  # every signal's score at the last scored step
     wants: dict = field(default_factory=dict)  # every signal's decision at the last scored step
     ask: AskRecord | None = None  # the open assistance request's record (the queue's)
-    teleop_left: int | None = None  # operator steps left in a budgeted assistance event
     timeline: deque = field(default_factory=lambda: deque(maxlen=U_HISTORY))  # TimelinePoint per step
     restarts: int = 0
     restart_at: float | None = None
@@ -105,35 +104,16 @@ class Robot:
     action_periods: deque = field(default_factory=lambda: deque(maxlen=1000))  # seconds between actions sent
     last_sent: float | None = None
     view: RobotView | None = None  # what readers see (``publish``)
-    handovers: HandoverMailbox = field(default_factory=HandoverMailbox)  # claims, releases for the next tick
-    _mode: FleetMode = field(default=FleetMode.AUTONOMOUS, init=False)
-    _paused_from: FleetMode | None = field(default=None, init=False)  # the mode ``resume`` returns to
+    control: RobotControl = field(default_factory=RobotControl)  # mode and counters (``policy.hitl_state``)
 
     @property
-    def mode(self) -> FleetMode:
-        return self._mode
+    def mode(self) -> Mode:
+        return self.control.mode
 
     @property
-    def paused_from(self) -> FleetMode | None:
-        """The mode a paused robot resumes into (None when not paused)."""
-        return self._paused_from
-
-    def set_mode(self, mode: FleetMode) -> None:
-        """The robot's mode after a transition of the loop or an operator. A paused robot stays paused:
-        the transition becomes the mode it resumes into. A fault ends a pause."""
-        if self._mode == FleetMode.PAUSED and mode != FleetMode.FAULTED:
-            self._paused_from = FleetMode(mode)
-        else:
-            self._mode, self._paused_from = FleetMode(mode), None
-
-    def pause(self) -> None:
-        """An admin's pause: not stepped until ``resume``."""
-        if self._mode != FleetMode.PAUSED:
-            self._paused_from, self._mode = self._mode, FleetMode.PAUSED
-
-    def resume(self, mode: FleetMode) -> None:
-        """Ends a pause (or overrides any mode: a reset), into ``mode``."""
-        self._mode, self._paused_from = FleetMode(mode), None
+    def teleop_left(self) -> int | None:
+        """Operator steps left in a budgeted assistance event (None: not under teleop, or continuous)."""
+        return self.control.teleop_left
 
     def publish(self) -> None:
         """A consistent copy of what the API shows, so readers never wait for a tick in progress."""
@@ -146,9 +126,9 @@ class Robot:
         takes the new mode and keeps the scores it had when the new point has none."""
         last = self.timeline[-1] if self.timeline else None
         before = last.mode if last is not None else point.mode
-        steady = FleetMode.PAUSED in (before, point.mode)  # pausing and resuming change nothing for the plot
-        asked = not steady and point.mode == FleetMode.WAITING and before != FleetMode.WAITING
-        handed = not steady and (point.mode == FleetMode.TELEOP) != (before == FleetMode.TELEOP)
+        steady = Mode.PAUSED in (before, point.mode)  # pausing and resuming change nothing for the plot
+        asked = not steady and point.mode == Mode.WAITING and before != Mode.WAITING
+        handed = not steady and (point.mode == Mode.TELEOP) != (before == Mode.TELEOP)
         if last is None or last.t != point.t:
             self.timeline.append(replace(point, asked=asked, handed=handed))
             return

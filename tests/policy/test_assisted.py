@@ -60,7 +60,7 @@ def test_full_teleop_in_continuous_mode_lets_the_operator_finish_the_task():
     # the robot asks at its first step (and holds), then the operator drives to the end
     assert ep.success and ep.events == 1 and not ep.operator[0] and all(ep.operator[1:])
     assert ep.asked_at == [0] and ep.summary()["asked_at"] == [0]
-    assert TriggerState.autonomous([1]).teleop.tolist() == [False]
+    assert TriggerState([1]).teleop.tolist() == [False]
 
 
 def test_an_operator_taking_over_picks_up_where_the_scene_stands(task_cache):

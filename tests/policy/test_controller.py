@@ -145,14 +145,14 @@ def test_asking_holding_a_budgeted_takeover_and_a_fresh_history_on_hand_back():
     assert asked.asked_by == "scripted" and asked.why == "told to (1)"  # the signal's words, for the queue
     np.testing.assert_allclose(asked.action, frames[0].hold)
     held = controller.step(frames)[0]  # nobody has claimed it: it holds, unscored
-    assert held.source == keys.SOURCE_HOLD and not held.scored
+    assert held.source == keys.SOURCE_HOLD and not held.scores
     signal.ask.clear()
     controller.take_over(0)
     up = TeleopCommand((0.0, 0.0, 0.01), (0.0, 0.0, 0.0), 1.0)
     first = controller.step(frames, {0: up})[0]
     assert first.source == keys.SOURCE_OPERATOR and not first.returned and first.mode == Mode.TELEOP
     np.testing.assert_allclose(first.action[:3], frames[0].pos + [0, 0, 0.01])
-    assert first.action[9] == 1.0 and first.scored  # scored in shadow, for the segment and switch-back
+    assert first.action[9] == 1.0 and first.scores  # scored in shadow, for the segment and switch-back
     idle = controller.step(frames)[0]  # teleop without a command: holds the operator's last target
     np.testing.assert_allclose(idle.action, first.action)
     second = controller.step(frames, {0: up})[0]

@@ -8,7 +8,7 @@ import numpy as np
 
 from policy.normalizer import MinMaxNormalizer
 from policy.uncertainty import UncertaintyResult
-from server.fleet.commands import CommandMailbox
+from server.fleet.inbox import Inbox
 from server.fleet.robot import Robot, TimelinePoint
 from sim.registry import make_task
 from sim.spaces import TeleopLimits
@@ -108,7 +108,7 @@ class _View:
     slot = _Slot()
 
     def __init__(self, modes):
-        robot = Robot(id=0, task="lift-cube", slot=None, seed=0, commands=CommandMailbox(TeleopLimits()))
+        robot = Robot(id=0, task="lift-cube", slot=None, seed=0, inbox=Inbox(TeleopLimits()))
         for t, m in enumerate(modes):
             robot.record(TimelinePoint(t, m, 0.25 * (t + 1), 1.0 if t % 2 else None))
         self.timeline = tuple(robot.timeline)
@@ -213,7 +213,7 @@ def test_the_panel_shows_the_request_a_robot_waits_on_and_the_papers_u_apart():
     from server.fleet.assistance import AskRecord, AssistanceQueue
     from web.panels import FleetSnapshot, overview_markdown, robot_markdown
 
-    robot = Robot(id=0, task="lift-cube", slot=_Slot(), seed=0, commands=CommandMailbox(TeleopLimits()))
+    robot = Robot(id=0, task="lift-cube", slot=_Slot(), seed=0, inbox=Inbox(TeleopLimits()))
     robot.scores = {"spread": 0.3}
     robot.u_history.append(0.062)
     robot.publish()
@@ -224,7 +224,7 @@ def test_the_panel_shows_the_request_a_robot_waits_on_and_the_papers_u_apart():
     assert scores.splitlines()[2].startswith("| 0 | spread: 0.3 / 0.5 | 0.062 / 2 |")
     queue = AssistanceQueue(10.0)
     robot.ask = queue.ask(0, AskRecord("spread", 2.4, 0.5, "spread: stall 2.4× its threshold", 7, 0.062)).ask
-    robot.set_mode("waiting")
+    robot.control.ask(np.zeros(10))
     robot.publish()
     snap = FleetSnapshot({0: robot.view}, tuple(queue.pending()))
     glance, scores = overview_markdown(snap, "me").split("\n\n")

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import torch
 
+from policy.hitl_state import RobotControl
 from policy.signals import SignalInput, TriggerState, load_signal, make_signal, save_signal
 from policy.signals.base import CalibrationData, SignalError, StepSet
 from policy.signals.choice import IQR_TO_STD, ChoiceConfig, Hysteresis, reach, where_to_go
@@ -186,6 +187,8 @@ def test_choice_stall_asks_again_until_the_policy_agrees_with_the_operator(monke
     }
     current = torch.as_tensor(np.r_[[0, 0, 1], [0, 1, 0, 1, 0, 0], OPEN], dtype=torch.float32)[None]
 
+    control = RobotControl()  # robot 0's control state: the controller keeps the request's facts there
+
     def step(teleop=False, policy_dx=0.01, operator_dx=None):
         plan = current.clone()[:, None]
         plan[0, 0, 0] += policy_dx
@@ -195,7 +198,17 @@ def test_choice_stall_asks_again_until_the_policy_agrees_with_the_operator(monke
             op[0, 0] += operator_dx
         batch = SignalInput(torch.zeros(1, 1, OBS_DIM), current, np.asarray([0]), action=plan, operator_action=op)
         scores = signal.score(batch)
-        return scores, bool(signal.wants_help(scores, TriggerState(np.asarray([0]), np.asarray([teleop])))[0])
+        agreed = np.asarray([np.nan if control.agreed is None else float(control.agreed)])
+        state = TriggerState(
+            np.asarray([0]), np.asarray([teleop]), np.asarray([control.engaged]), agreed, np.asarray([control.driven])
+        )
+        wants = bool(signal.wants_help(scores, state)[0])
+        if teleop:
+            control.operator_step(True, wants, bool(scores.parts["agrees"][0] > 0), None)
+        else:
+            control.policy_step(wants)
+        step.state = state
+        return scores, wants
 
     spread["value"] = 0.02
     assert step()[1]  # the choice asks
@@ -203,7 +216,7 @@ def test_choice_stall_asks_again_until_the_policy_agrees_with_the_operator(monke
     assert step(teleop=True, policy_dx=0.01, operator_dx=-0.02)[1]  # but the policy would go the other way
     scores, wants = step()  # the first policy step after the takeover: ask again, to carry on
     assert wants and "carry on" in signal.explain(scores, 0)
-    assert not signal.urgent(TriggerState(np.asarray([0]), np.asarray([False])))[0]  # a cooldown may hold it back
+    assert not signal.urgent(step.state)[0]  # a cooldown may hold it back
     assert not step(teleop=True, policy_dx=-0.01, operator_dx=-0.02)[1]  # now it agrees
     assert not step()[1]  # handed back for good
     spread["value"] = 0.007  # over the return level, under the ask level: the request was settled

@@ -104,7 +104,7 @@ def test_every_signal_calibrates_and_scores_a_tiny_policy(tiny, name, tmp_path):
     scores = signal.score(batch)
     assert scores.value.shape == (3,) and np.isfinite(scores.value).all()
     assert all(np.isfinite(v).all() for k, v in scores.parts.items() if k != "discrepancy")
-    wants = signal.wants_help(scores, TriggerState.autonomous([10, 11, 12]))
+    wants = signal.wants_help(scores, TriggerState([10, 11, 12]))
     assert wants.shape == (3,) and wants.dtype == bool
     signal.reset([10, 11, 12])
     # saved and loaded next to the policy, it scores the same
@@ -223,7 +223,7 @@ def test_ensemble_variance_is_higher_away_from_the_training_data(tiny):
 def test_diff_dagger_patience_needs_consecutive_steps(tiny):
     signal = make_signal("diff-dagger", tiny[0])
     signal.calibration = {"threshold": 1.0}
-    state = TriggerState.autonomous([7, 8])
+    state = TriggerState([7, 8])
     seq = [[2.0, 2.0], [0.5, 2.0], [2.0, 2.0], [2.0, 0.5]]
     got = [signal.wants_help(Scores(np.array(v)), state).tolist() for v in seq]
     assert got == [[False, False], [False, True], [False, True], [True, False]]
@@ -249,7 +249,7 @@ def test_thrifty_switches_back_only_when_actions_agree_and_it_is_safe(tiny):
     teleop = TriggerState(np.arange(4), np.ones(4, dtype=bool))
     # under teleop: keeps asking unless actions agree and safety is high; no operator action: keeps asking
     assert signal.wants_help(scores, teleop).tolist() == [False, True, True, True]
-    auto = TriggerState.autonomous(range(4))
+    auto = TriggerState(range(4))
     assert signal.wants_help(scores, auto).tolist() == [False, False, True, False]
 
 
@@ -258,11 +258,11 @@ def test_random_asks_at_its_rate(tiny):
     ids = np.arange(1000)
     asks = signal.wants_help(
         signal.score(SignalInput(torch.zeros(1000, 1, OBS_DIM), torch.zeros(1000, 10), ids)),
-        TriggerState.autonomous(ids),
+        TriggerState(ids),
     )
     assert 0.16 < asks.mean() < 0.24
     signal.match_rate(0.0)
-    assert not signal.wants_help(Scores(np.array([0.999])), TriggerState.autonomous([0])).any()
+    assert not signal.wants_help(Scores(np.array([0.999])), TriggerState([0])).any()
 
 
 @pytest.mark.parametrize(

@@ -78,15 +78,15 @@ def test_a_new_scene_keeps_the_operators_progress(monkeypatch):
     plan_back = torch.as_tensor(_action([0.015, 0, 1]))[None, None]
     back = SignalInput(torch.zeros(1, 1, OBS_DIM), current, np.asarray([0]), action=plan_back)
     scores = signal.score(back)
-    assert signal.wants_help(scores, TriggerState.autonomous([0]))[0]
+    assert signal.wants_help(scores, TriggerState([0]))[0]
     assert signal.explain(scores, 0) == "new scene, the policy would undo the operator's work"
-    assert signal.urgent(TriggerState.autonomous([0]))[0]  # a cooldown does not hold it back
+    assert signal.urgent(TriggerState([0]))[0]  # a cooldown does not hold it back
 
 
 def test_on_a_familiar_scene_no_request_is_urgent(monkeypatch):
     signal, step = _signal(monkeypatch)
     assert step(spread=6.0, novelty=0.0, motion=0.0)[1]
-    assert not signal.urgent(TriggerState.autonomous([0]))[0]
+    assert not signal.urgent(TriggerState([0]))[0]
 
 
 def test_the_sweep_scales_both_thresholds(monkeypatch):
@@ -100,7 +100,7 @@ def test_wants_help_needs_the_scores_of_the_same_robots(monkeypatch):
     signal, step = _signal(monkeypatch)
     scores, _ = step(spread=1.0, novelty=0.0, motion=0.0)
     with pytest.raises(SignalError, match="same robots"):
-        signal.wants_help(scores, TriggerState.autonomous([7]))
+        signal.wants_help(scores, TriggerState([7]))
 
 
 def _steps(n=12):

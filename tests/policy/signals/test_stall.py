@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import torch
 
+from policy.hitl_state import RobotControl
 from policy.signals import SignalInput, TriggerState, make_signal
 from policy.signals.base import CalibrationData, SignalError, StepSet
 from policy.signals.stall import StallConfig, gripper_open, policy_motion
@@ -53,7 +54,7 @@ def _step(signal, motion, gripper=OPEN, ids=(0,)):
     chunk = _chunks([[0, 0, 1]] * b, [[motion, 0, 0]] * b, gripper=gripper, length=1)
     batch = SignalInput(torch.zeros(b, 1, 26), torch.as_tensor(current), np.asarray(ids), action=chunk)
     scores = signal.score(batch)
-    return scores, signal.wants_help(scores, TriggerState.autonomous(ids))
+    return scores, signal.wants_help(scores, TriggerState(ids))
 
 
 def test_stillness_is_the_missing_share_of_the_usual_stride():
@@ -140,13 +141,24 @@ def _undo_signal(**config):
     return signal
 
 
+_CONTROLS: dict[int, RobotControl] = {}  # robot 0's control state per signal: what the controller keeps
+
+
 def _at(signal, pos, to, gripper_now=OPEN, gripper_plan=OPEN, teleop=False):
-    """One step of robot 0 standing at ``pos`` whose policy plans to go to ``to`` (m)."""
+    """One step of robot 0 standing at ``pos`` whose policy plans to go to ``to`` (m); its takeover facts
+    come from a control state, as the controller passes them."""
+    control = _CONTROLS.setdefault(id(signal), RobotControl())
     current = torch.as_tensor(_action(pos, gripper_now))[None]
     chunk = torch.as_tensor(_action(to, gripper_plan))[None, None]
     batch = SignalInput(torch.zeros(1, 1, 26), current, np.asarray([0]), action=chunk)
     scores = signal.score(batch)
-    return bool(signal.wants_help(scores, TriggerState(np.asarray([0]), np.asarray([teleop])))[0])
+    state = TriggerState(np.asarray([0]), np.asarray([teleop]), after_takeover=np.asarray([control.driven]))
+    wants = bool(signal.wants_help(scores, state)[0])
+    if teleop:
+        control.operator_step(True, None, None, None)
+    else:
+        control.policy_step(None)
+    return wants
 
 
 def test_after_a_takeover_a_plan_back_to_where_the_robot_asked_asks_again():
@@ -250,3 +262,26 @@ def test_without_reask_undo_a_plan_back_is_only_scored_for_a_stall():
 def test_reask_undo_settings_are_checked(bad):
     with pytest.raises(SignalError):
         StallConfig(**bad)
+
+
+def test_the_signal_keeps_no_takeover_of_its_own_it_reads_the_robots_control_state():
+    """What a robot's takeovers were comes from its control state (``TriggerState.after_takeover``): the
+    same steps with the operator's step told or not told decide differently, and the operator's steps
+    themselves leave nothing in the signal."""
+
+    def heading_back(after_takeover: bool) -> bool:
+        signal = _undo_signal()
+        for teleop, pos, to in ((False, [0, 0, 1.0], [0, 0, 1.0]), (True, [0.02, 0, 1.0], [0.01, 0, 1.0])):
+            current = torch.as_tensor(_action(pos, OPEN))[None]
+            batch = SignalInput(
+                torch.zeros(1, 1, 26), current, np.asarray([0]), action=torch.as_tensor(_action(to, OPEN))[None, None]
+            )
+            signal.wants_help(signal.score(batch), TriggerState(np.asarray([0]), np.asarray([teleop])))
+        current = torch.as_tensor(_action([0.02, 0, 1.0], OPEN))[None]
+        plan = torch.as_tensor(_action([0.01, 0, 1.0], OPEN))[None, None]  # back towards where it asked
+        batch = SignalInput(torch.zeros(1, 1, 26), current, np.asarray([0]), action=plan)
+        state = TriggerState(np.asarray([0]), after_takeover=np.asarray([after_takeover]))
+        return bool(signal.wants_help(signal.score(batch), state)[0])
+
+    assert heading_back(after_takeover=True)  # told of the takeover: the plan undoes it, ask again
+    assert not heading_back(after_takeover=False)  # not told: the signal kept no record of the operator's step

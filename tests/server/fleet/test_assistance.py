@@ -6,10 +6,14 @@ import math
 
 import pytest
 
-from server.fleet.assistance import WAIT_SCALE_S, AssistanceQueue, urgency
+from server.fleet.assistance import WAIT_SCALE_S, AskRecord, AssistanceQueue, urgency
 
 LIFT, DRAWER = 0.004, 0.5  # thresholds of two signals on very different scales
 LIFT_SCORE, DRAWER_SCORE = 1100 * LIFT, 1.3 * DRAWER  # 1,100x and 1.3x their thresholds
+
+
+def _open(queue: AssistanceQueue, robot_id: int, score: float, threshold: float, reason: str, now: float):
+    return queue.ask(robot_id, AskRecord(None, score, threshold, reason), now)
 
 
 def _order(queue: AssistanceQueue, now: float) -> list[int]:
@@ -18,34 +22,34 @@ def _order(queue: AssistanceQueue, now: float) -> list[int]:
 
 def test_a_robot_that_waited_longer_than_wait_scale_goes_ahead_of_a_fresh_1100x_request():
     q = AssistanceQueue(lease_seconds=30)
-    q.open(1, DRAWER_SCORE, DRAWER, "spread", now=0.0)
-    q.open(2, LIFT_SCORE, LIFT, "spread", now=WAIT_SCALE_S + 1)  # fresh, three orders of magnitude over
+    _open(q, 1, DRAWER_SCORE, DRAWER, "spread", now=0.0)
+    _open(q, 2, LIFT_SCORE, LIFT, "spread", now=WAIT_SCALE_S + 1)  # fresh, three orders of magnitude over
     assert _order(q, now=WAIT_SCALE_S + 1) == [1, 2]  # by score / threshold it waited ~3 hours for this
 
 
 def test_a_fresh_high_ratio_request_never_overtakes_a_robot_that_waited_past_wait_scale():
     for opened in (WAIT_SCALE_S + 0.01, 11.0, 30.0, 300.0):  # any time after the drawer waited wait_scale
         q = AssistanceQueue(lease_seconds=30)
-        q.open(1, DRAWER_SCORE, DRAWER, "spread", now=0.0)
-        q.open(2, 1e12 * LIFT, LIFT, "spread", now=opened)
+        _open(q, 1, DRAWER_SCORE, DRAWER, "spread", now=0.0)
+        _open(q, 2, 1e12 * LIFT, LIFT, "spread", now=opened)
         for now in (opened, opened + 1, opened + 100, opened + 1e5):
             assert _order(q, now) == [1, 2], (opened, now)
 
 
 def test_within_wait_scale_the_urgency_still_ranks_and_one_signal_keeps_its_order():
     q = AssistanceQueue(lease_seconds=30)
-    q.open(1, DRAWER_SCORE, DRAWER, "spread", now=0.0)
-    q.open(2, LIFT_SCORE, LIFT, "spread", now=2.0)
-    q.open(3, 1.5 * LIFT, LIFT, "spread", now=2.0)  # same signal, lower score, same age
+    _open(q, 1, DRAWER_SCORE, DRAWER, "spread", now=0.0)
+    _open(q, 2, LIFT_SCORE, LIFT, "spread", now=2.0)
+    _open(q, 3, 1.5 * LIFT, LIFT, "spread", now=2.0)  # same signal, lower score, same age
     for now in (2.0, 2.0 + 3 * WAIT_SCALE_S):  # 0.999, 0.23 + 0.2 (2 s older), 0.33; plus equal waits
         assert _order(q, now) == [2, 1, 3]
 
 
 def test_claimed_requests_sort_last_and_the_priority_says_how_far_over_and_how_long():
     q = AssistanceQueue(lease_seconds=30)
-    q.open(1, LIFT_SCORE, LIFT, "spread", now=0.0)
-    q.open(2, DRAWER_SCORE, DRAWER, "spread", now=5.0)
-    q.open(3, 1.0, 1.0, "watchdog: 100 of 200 steps without success", now=5.0)
+    _open(q, 1, LIFT_SCORE, LIFT, "spread", now=0.0)
+    _open(q, 2, DRAWER_SCORE, DRAWER, "spread", now=5.0)
+    _open(q, 3, 1.0, 1.0, "watchdog: 100 of 200 steps without success", now=5.0)
     assert _order(q, now=5.0) == [1, 2, 3]
     q.claim(1, "op", now=5.0)
     assert _order(q, now=5.0) == [2, 3, 1] and q.waits == [5.0]
@@ -76,8 +80,8 @@ def test_claimed_requests_sort_last_and_the_priority_says_how_far_over_and_how_l
 def test_every_score_and_threshold_give_a_bounded_urgency_and_a_finite_priority(score, threshold, expected):
     assert urgency(score, threshold) == expected
     q = AssistanceQueue(lease_seconds=30)
-    q.open(1, score, threshold, "odd", now=0.0)
-    q.open(2, 1.0, 1.0, "watchdog", now=-2 * WAIT_SCALE_S)  # waited longer than any urgency is worth
+    _open(q, 1, score, threshold, "odd", now=0.0)
+    _open(q, 2, 1.0, 1.0, "watchdog", now=-2 * WAIT_SCALE_S)  # waited longer than any urgency is worth
     assert [math.isfinite(r.priority(3.0)) for r in q.pending(3.0)] == [True, True]
     assert _order(q, now=3.0) == [2, 1]
 
@@ -89,8 +93,8 @@ def test_no_robot_starves_one_operator_serving_three_1100x_robots_and_a_1_3x_one
     takeover, again, n = 5.0, 1.0, 4
     q = AssistanceQueue(lease_seconds=1e9)
     for robot in range(3):
-        q.open(robot, LIFT_SCORE, LIFT, "spread", now=0.0)
-    q.open(3, DRAWER_SCORE, DRAWER, "spread", now=0.0)
+        _open(q, robot, LIFT_SCORE, LIFT, "spread", now=0.0)
+    _open(q, 3, DRAWER_SCORE, DRAWER, "spread", now=0.0)
     asks_at: dict[int, float] = {}
     served = [0] * n
     now = 0.0
@@ -98,7 +102,7 @@ def test_no_robot_starves_one_operator_serving_three_1100x_robots_and_a_1_3x_one
         for robot, t in list(asks_at.items()):
             if t <= now:
                 score, threshold = (DRAWER_SCORE, DRAWER) if robot == 3 else (LIFT_SCORE, LIFT)
-                q.open(robot, score, threshold, "spread", now=t)
+                _open(q, robot, score, threshold, "spread", now=t)
                 del asks_at[robot]
         head = q.pending(now)[0]  # the operator takes the head of the queue
         q.claim(head.robot_id, "op", now=now)
@@ -123,10 +127,10 @@ def test_cur_puts_stalled_robots_first_then_urgency_and_lets_an_old_request_wait
     """Fleet-DAgger's CUR: constraint violations (the watchdog's stalled robots) first, then uncertainty;
     no waiting term, so a low-urgency request that waited 100 wait scales still goes last."""
     q = AssistanceQueue(lease_seconds=30, order="cur")
-    q.open(1, DRAWER_SCORE, DRAWER, "spread", now=0.0)
-    q.open(2, LIFT_SCORE, LIFT, "spread", now=50.0)
+    _open(q, 1, DRAWER_SCORE, DRAWER, "spread", now=0.0)
+    _open(q, 2, LIFT_SCORE, LIFT, "spread", now=50.0)
     _watchdog(q, 3, now=90.0)
-    q.open(4, 1.5 * LIFT, LIFT, "spread", now=95.0)
+    _open(q, 4, 1.5 * LIFT, LIFT, "spread", now=95.0)
     assert _order(q, now=100 * WAIT_SCALE_S) == [3, 2, 4, 1]
     q.claim(3, "op", now=100.0)
     assert _order(q, now=100.0) == [2, 4, 1, 3]  # claimed requests still last
@@ -134,9 +138,9 @@ def test_cur_puts_stalled_robots_first_then_urgency_and_lets_an_old_request_wait
 
 def test_fcfs_serves_the_request_opened_first_whatever_the_scores():
     q = AssistanceQueue(lease_seconds=30, order="fcfs")
-    q.open(1, 1.5 * LIFT, LIFT, "spread", now=0.0)
+    _open(q, 1, 1.5 * LIFT, LIFT, "spread", now=0.0)
     _watchdog(q, 2, now=1.0)
-    q.open(3, 1e12 * LIFT, LIFT, "spread", now=2.0)
+    _open(q, 3, 1e12 * LIFT, LIFT, "spread", now=2.0)
     assert _order(q, now=2.0) == [1, 2, 3]
     q.claim(1, "op", now=3.0)
     assert _order(q, now=3.0) == [2, 3, 1]

@@ -64,8 +64,11 @@ def test_commands_between_ticks_are_applied_once_in_order_or_refused(tmp_path):
     fleet.tick()  # threshold -1: the robot asks at once and holds
     assert fleet.view(0).mode == "waiting" and fleet.queue.get(0) is not None
     fleet.claim(0, "op")
-    assert fleet.view(0).mode == "teleop" and workers[0].priority == Priority.BACKGROUND
+    # the lease is the operator's at once; the loop puts the robot under their control at its next tick
+    assert fleet.view(0).mode == "waiting" and fleet.queue.get(0).holder == "op"
+    assert workers[0].priority == Priority.BACKGROUND
     fleet.tick()  # no command yet: it holds
+    assert fleet.view(0).mode == "teleop"
     assert workers[0].priority == Priority.CONTROL  # the operator's robot runs at the loop's priority
     z0 = fleet.view(0).frame.pos[2]
     turn = TeleopCommand((0.0, 0.0, 0.0), (0.0, 0.0, 0.1), 1.0)
@@ -283,6 +286,7 @@ def test_a_takeover_ends_with_the_episode_only_at_success_or_with_the_lease(tmp_
     fleet, _ = _fleet(tmp_path, horizon=3, success_z=1.05, hand_back="continuous", return_after=1000)
     fleet.tick()
     fleet.claim(0, "op")
+    fleet.tick()  # the claim applies; no command yet: the robot holds (holds do not use up the horizon)
     for _ in range(5):  # z climbs 1 cm a step from 1.0: past the horizon (3), then at 1.05 success
         assert fleet.view(0).mode == "teleop"
         fleet.command(0, "op", UP)
@@ -418,7 +422,7 @@ def test_freeze_idle_steps_a_waiting_or_idle_teleop_robot_only_on_its_operators_
 
 def test_claims_and_releases_never_wait_for_a_tick_in_progress(tmp_path):
     """A tick holds the fleet lock for its whole batch; a claim and a release are decided by the queue
-    at once, shown at once, and applied by the loop at its next tick (``server.fleet.handovers``)."""
+    at once and applied by the loop at its next tick (``server.fleet.inbox``), which the view then shows."""
     import threading
     import time
 
@@ -438,7 +442,7 @@ def test_claims_and_releases_never_wait_for_a_tick_in_progress(tmp_path):
         t0 = time.monotonic()
         fleet.claim(0, "op")  # would wait 10 s for the lock held by the "tick"
         assert time.monotonic() - t0 < 2.0
-        assert fleet.view(0).mode == "teleop" and fleet.queue.get(0).holder == "op"
+        assert fleet.view(0).mode == "waiting" and fleet.queue.get(0).holder == "op"
         assert fleet.command(0, "op", UP) == 1  # the claimant's command waits for the tick that applies the claim
         with pytest.raises(ServiceError) as other:
             fleet.claim(0, "bob")
@@ -454,9 +458,9 @@ def test_claims_and_releases_never_wait_for_a_tick_in_progress(tmp_path):
     [segment] = _segments(fleet)
     assert segment.operator == "op" and segment.status == "open"
 
-    with fleet.lock:  # a release during a tick: shown at once, the operator's commands refused from then on
+    with fleet.lock:  # a release during a tick: the operator's commands refused from then on
         fleet.release(0, "op")
-        assert fleet.view(0).mode == "autonomous"
+        assert fleet.view(0).mode == "teleop"  # until the next tick hands the robot back
         with pytest.raises(ServiceError) as refused:
             fleet.command(0, "op", UP)
         assert refused.value.status == 409
@@ -518,9 +522,9 @@ def test_a_waiting_robot_shows_the_request_the_queue_holds_and_its_takeover_reco
     assert fleet.view(0).mode == "teleop" and teleop.asking.reason == queued.reason  # still the request's
     assert teleop.uncertainty == queued.uncertainty  # the score it asked with, not the operator step's
     fleet.release(0, "op")
-    shown = fleet.view(0)  # handed back at once, before the next tick applies it
-    assert shown.mode == "autonomous" and summary(shown).asking.reason is None
+    assert fleet.view(0).mode == "teleop"  # the next tick hands it back
     fleet.tick()
+    assert fleet.view(0).mode in ("autonomous", "waiting")  # handed back (and it may ask again)
     with fleet.sessions() as s:
         [row] = s.scalars(select(SegmentRecord)).all()
     assert (row.signal, row.score, row.threshold, row.reason, row.paper_u) == (
@@ -603,4 +607,47 @@ def test_camera_views_shown_during_a_takeover_are_recorded_in_its_segment(tmp_pa
     seg = read_segment(fleet.settings.data_dir / segment.path)
     assert [m["frame_id"] for m in seg.images["front"]] == ["step-1", "step-2"] and len(seg.images["wrist"]) == 2
     assert seg.jpeg(seg.images["wrist"][0]) == jpeg.getvalue()
+    fleet.stop()
+
+
+def test_a_served_robots_control_state_has_one_writer_the_control_loop(tmp_path):
+    """While the loop thread runs, it alone changes a robot's mode and counters: claims, releases and an
+    admin's actions reach the robot through its inbox, and a change from any other thread is refused."""
+    import threading
+    import time
+
+    from policy.hitl_state import WrongWriter
+
+    fleet, _ = _fleet(tmp_path, hand_back="continuous", return_after=1000, control_hz=100)
+    stop = threading.Event()
+    loop = threading.Thread(target=fleet.loop.run, args=(stop,), daemon=True)
+    loop.start()
+
+    def until(mode):
+        deadline = time.monotonic() + 10
+        while fleet.view(0).mode != mode and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return fleet.view(0).mode
+
+    try:
+        assert until("waiting") == "waiting"  # threshold -1: the robot asks
+        control = fleet.robots[0].control
+        with pytest.raises(WrongWriter):
+            control.take_over(None)  # not the loop's thread: refused, nothing changed
+        with pytest.raises(WrongWriter):
+            fleet.robots[0].slot.controller.release(0)
+        assert control.mode == "waiting"
+        fleet.claim(0, "op")
+        assert until("teleop") == "teleop"  # the loop applied the claim
+        fleet.pause(0)  # an admin's action returns once the loop has applied it
+        assert fleet.view(0).mode == "paused" and control.paused_from == "teleop"
+        with pytest.raises(ServiceError) as twice:
+            fleet.resume(0)
+            fleet.resume(0)  # the loop's refusal reaches the caller
+        assert twice.value.status == 409 and "not paused" in str(twice.value)
+        assert fleet.view(0).mode == "teleop"
+    finally:
+        stop.set()
+        loop.join(10)
+    control.pause()  # no loop: unbound again
     fleet.stop()
