@@ -8,9 +8,9 @@ comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
 .PHONY: install osmesa demo test lint docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
-	finetune-docs finetune-recipe-docs hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
-	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-before-docs operators-hand-back-docs loop-cooldown-docs asking-dev-docs choice-dev-docs \
-	operator-dev-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs lift-variants-docs clean
+	hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
+	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-hand-back-docs loop-cooldown-docs asking-dev-docs choice-dev-docs \
+	operator-dev-docs fleet-release-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -40,8 +40,9 @@ demo: install
 		| sed 's/^/hitl: operator token (shown once): /'
 	$(BIN)/hitl serve --config configs/demo.toml
 
+# two workers, a test file each at a time (its module fixtures, such as a served fleet, built once)
 test: install
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 lint: install
 	$(BIN)/ruff check .
@@ -150,7 +151,7 @@ hitl-dev-docs: install
 		--signals spread output-variance --quantiles 0.25 0.5 0.75 0.9 0.95 0.98 --episodes 8 --seed 2000 \
 		--reference-episodes 8 --cache runs/bench-hitl-dev --jobs 2 --json > docs/results/hitl/dev/spread-vs-output-variance.json
 
-# docs/benchmarks/hitl.md, "The object-frame lift policy": runs/lift-cube-object (from `make frame-docs`) on the
+# docs/benchmarks/hitl-method.md, "The object-frame lift policy": runs/lift-cube-object (`make frame-docs`) on the
 # lift shifts on the paper's protocol (evaluation seeds 1000-1019; cells cached under runs/bench-hitl-obj), and
 # the simulated operator's takeovers with `stall` asking, on development seeds 2000-2007, in both hand-back
 # modes (about 30 min on 2 cores).
@@ -207,33 +208,21 @@ choice-dev-docs: install
 	$(BIN)/hitl bench signals --policy policies/open-drawer --signals denoising,choice-stall --task open-drawer --quiet \
 		> docs/results/serving/signals-choice-stall-drawer.json
 
-# docs/benchmarks/hitl.md, "Do the policies finish after a few operator steps?": one takeover of 4 (and 8) operator
-# steps at the drawer policy's steps 0, 5 and 10, of 4 (and 16) at a grid of the cup-stack policy's steps, then the
-# bundled policy alone, development seeds 2000-2011 (about 45 min on 2 cores, most of it cup-stack).
+# docs/benchmarks/hitl-method.md, "Do the cup-stack and drawer policies resume after a few operator steps?": one
+# takeover of 4 (and 8) operator steps at the drawer policy's steps 0, 5 and 10, of 4 (and 16) at a grid of the
+# cup-stack policy's steps, then the bundled policy alone, development seeds 2000-2011 (about 45 min on 2 cores,
+# most of it cup-stack).
 resume-docs: install
 	$(BIN)/hitl report resume --policy policies/cup-stack --at 0 40 80 120 160 200 240 --budgets 4 16 --episodes 12 \
 		--threads 2 --out docs/results/policy/resume-cup-stack.json --quiet
 	$(BIN)/hitl report resume --policy policies/open-drawer --at 0 5 10 --budgets 4 8 --episodes 12 \
 		--threads 2 --out docs/results/policy/resume-open-drawer.json --quiet
 
-# docs/benchmarks/hitl.md, "Handed back at the pre-grasp pose": the bundled lift policy handed back with the open
+# docs/benchmarks/hitl-method.md, "Lift: finger rays": the bundled lift policy handed back with the open
 # gripper placed at each lift object's grasp, on 12 development episodes each (about 2 min on 2 cores).
 pregrasp-docs: install
 	$(BIN)/hitl report pregrasp --policy policies/lift-cube --tasks lift-cube lift-nut lift-hammer lift-hook \
 		--episodes 12 --seed 2000 --threads 2 --quiet --out docs/results/policy/pregrasp-lift.json
-
-# docs/benchmarks/hitl.md, "Lift: finger rays": two lift policies trained with the object shifted against the end
-# effector (tried, not bundled), on the demonstrations of `make policy-docs`, handed back at the pre-grasp pose
-# (about 25 min on 2 cores).
-LIFT_PREGRASP := --tasks lift-cube lift-nut lift-hammer lift-hook --episodes 12 --seed 2000 --threads 2 --quiet
-lift-variants-docs: install
-	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart --out runs/lift-cube-jxy --frame object \
-		--origin-jitter 0.04 --threads 1 --quiet
-	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-dart --out runs/lift-cube-jz --frame object \
-		--origin-jitter 0.03 --height-jitter 0.02 --threads 1 --quiet
-	$(BIN)/hitl report pregrasp --policy runs/lift-cube-jxy $(LIFT_PREGRASP) --out docs/results/policy/pregrasp-lift-jitter-xy.json
-	$(BIN)/hitl report pregrasp --policy runs/lift-cube-jz $(LIFT_PREGRASP) \
-		--out docs/results/policy/pregrasp-lift-jitter-xy-height.json
 
 # docs/benchmarks/hitl.md, "The floor": the oracle's fewest operator steps for 100% success (best-of-sweep), on the
 # bundled policies, with the simulated operator in carry-on style, and on cup-stack and the drawer with the operator
@@ -280,25 +269,10 @@ operators-hand-back-docs: install
 		--data-dir var/bench-operators-return-$$r --out docs/results/service/operators-return-$$r.json --quiet \
 		> /dev/null || exit 1; done
 
-# the figure, today's sweep beside the one before (operators-before-docs) where it has been run
+# the figure of today's sweep (redrawn from its report, nothing runs)
 operators-figure: install
-	$(BIN)/hitl bench operators --from docs/results/service/operators.json --label "this release" --figure docs/figures/operators.png \
-		$$(test -f docs/results/service/operators-before.json && echo --compare before=docs/results/service/operators-before.json) > /dev/null
-
-# docs/benchmarks/service.md, "Robots per operator", before: the same sweep on the policies and the asking signal
-# that had landed before the oracle, the steerable policies and choice-stall (commit $(OPERATORS_BEFORE): spread-stall
-# and that commit's bundles), served by that commit's service with this benchmark added to it
-# (bench/before/operators-$(OPERATORS_BEFORE).patch: the benchmark, the bot's pace and the queue's orders); needs the
-# repository's history (about 15 min; the sizes at which robots per operator is decided today)
-OPERATORS_BEFORE := c1db223
-operators-before-docs: install
-	rm -rf var/operators-before var/bench-operators-before && git worktree prune
-	git worktree add --detach var/operators-before $(OPERATORS_BEFORE)
-	git -C var/operators-before apply $(CURDIR)/bench/before/operators-$(OPERATORS_BEFORE).patch
-	(cd var/operators-before && $(abspath $(BIN))/python -m hitl.cli bench operators --sizes 8 10 --control-hz 5 \
-		--ticks 1500 --data-dir ../bench-operators-before --quiet) > docs/results/service/operators-before.json
-	git worktree remove --force var/operators-before
-	$(MAKE) operators-figure
+	$(BIN)/hitl bench operators --from docs/results/service/operators.json --label "this release" \
+		--figure docs/figures/operators.png > /dev/null
 
 # docs/benchmarks/nights.md, "Why lift-cube robots asked": the bundled lift policy on lift-cube with the fleet's
 # asking (spread-stall, continuous, cooldown 10) on development seeds, the watchdog at half and at 80% of the
@@ -310,6 +284,12 @@ asking-dev-docs: install
 	$(BIN)/hitl assist --policy policies/lift-cube --task lift-cube --driver spread-stall --mode continuous --cooldown 10 \
 		--watchdog 0.8 --hand-back-when-held --episodes 30 --seed 8000 --envs 2 --threads 2 --json --quiet \
 		> docs/results/nights/dev/lift-cube-asking.json
+
+# docs/benchmarks/serving.md, "This release's fleet rate": 16 robots on pool workers, the loop's CPU split into the
+# policy, each signal and the loop's own, beside the previous release's figure (fleet.json) (about 2 min)
+fleet-release-docs: install
+	$(BIN)/hitl bench fleet --robots 16 --seconds 15 --worker pool --compare docs/results/serving/fleet.json \
+		--out docs/results/serving/fleet-release.json --quiet > /dev/null
 
 # docs/benchmarks/serving.md, "Every worker back end side by side", and docs/architecture.md: the fleet on the
 # process, pool and ray back ends in one run, 4 and 16 robots (about 6 minutes on 2 cores)
@@ -374,42 +354,6 @@ console-docs: install
 	$(BIN)/hitl bench console --clients wire --browsers 2 --no-cameras --out docs/results/console/wire-2-no-cameras.json \
 		--quiet || true
 	$(BIN)/hitl bench console --out docs/results/console/chromium.json --quiet || true
-
-# docs/benchmarks/finetune.md, the world-frame lift policy (policies/lift-cube, bundled): fine-tuning with the
-# widened observation range, the 4000-sample upper bound, large K, longer and budgeted takeovers, the steps around
-# the grasp and where the fine-tuned policies close the gripper. JSON in docs/results/finetune/, figures in
-# docs/figures/. Points are cached under runs/bench-finetune (from scratch: about 1.5 h on 2 cores).
-finetune-docs: install
-	$(BIN)/hitl bench finetune --section finetune-widened --report docs/benchmarks/finetune.md --json --quiet \
-		> docs/results/finetune/widened.json
-	$(BIN)/hitl bench finetune --sources full-trajectory --counts 4000 --section finetune-upper-widened \
-		--report docs/benchmarks/finetune.md --json --quiet > docs/results/finetune/upper-widened.json
-	$(BIN)/hitl bench finetune --sources full-trajectory takeover:spread --counts 600 1200 --section finetune-large-k-widened \
-		--report docs/benchmarks/finetune.md --json --quiet > docs/results/finetune/large-k-widened.json
-	$(BIN)/hitl bench finetune --sources takeover:denoising takeover:random --counts 50 100 200 --return-after 30 \
-		--section finetune-return-after-30-widened --report docs/benchmarks/finetune.md --json --quiet \
-		> docs/results/finetune/return-after-30-widened.json
-	$(BIN)/hitl bench finetune --hand-back budgeted --sources takeover:spread --counts 100 --episodes 5 \
-		--section finetune-budgeted-widened --report docs/benchmarks/finetune.md --json --quiet \
-		> docs/results/finetune/budgeted-widened.json
-	$(BIN)/hitl bench finetune --sources expert:grasp full-trajectory --counts 20 50 100 --section finetune-grasp-window \
-		--report docs/benchmarks/finetune.md --json --quiet > docs/results/finetune/grasp-window.json
-	$(BIN)/hitl bench finetune --sources takeover:spread full-trajectory expert:grasp --counts 100 \
-		--section finetune-first-close --report docs/benchmarks/finetune.md --json --quiet \
-		> docs/results/finetune/first-close.json
-
-# docs/benchmarks/finetune.md, "The job's recipe": one setting of FinetuneConfig changed at a time, K = 100 on the
-# world-frame lift policy (about 20 min; figures in docs/figures/finetune-recipe/).
-finetune-recipe-docs: install
-	for r in 0.8 1.0; do $(BIN)/hitl bench finetune --sources full-trajectory --counts 100 --ratio $$r --section ratio-$$r \
-		--report docs/benchmarks/finetune.md --figures docs/figures/finetune-recipe --json --quiet \
-		> docs/results/finetune/ratio-$$r.json || exit 1; done
-	for lr in 2e-3 1e-4; do $(BIN)/hitl bench finetune --sources full-trajectory --counts 100 --lr $$lr --section lr-$$lr \
-		--report docs/benchmarks/finetune.md --figures docs/figures/finetune-recipe --json --quiet \
-		> docs/results/finetune/lr-$$lr.json || exit 1; done
-	for n in 250 1500; do $(BIN)/hitl bench finetune --sources takeover:spread --counts 100 --steps $$n --section steps-$$n \
-		--report docs/benchmarks/finetune.md --figures docs/figures/finetune-recipe --json --quiet \
-		> docs/results/finetune/steps-$$n.json || exit 1; done
 
 # The object-frame lift policy (docs/policy.md, "The object frame"), the stall signal's assisted runs
 # (docs/results/signals/assist-stall-*.json) and the fine-tuning points of docs/benchmarks/finetune.md that use

@@ -10,13 +10,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from policy.evaluate import PolicyEpisode, context_for  # noqa: E402
+from lab.fields import FieldEpisode, context_for  # noqa: E402
 from policy.uncertainty import UncertaintyResult  # noqa: E402
 
 MODE_COLOURS = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"]
 
 
-def plot_timeline(ep: PolicyEpisode, threshold: float | None, out: Path, title: str) -> Path:
+def plot_timeline(ep: FieldEpisode, threshold: float | None, out: Path, title: str) -> Path:
     u = np.asarray(ep.uncertainty)
     fig, (ax, ax2) = plt.subplots(2, 1, figsize=(8, 5), sharex=True, height_ratios=[2, 1])
     ax.plot(u, color="black", lw=1.2, label="U = D + α·Var_g")

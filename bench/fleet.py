@@ -154,6 +154,7 @@ def fleet_throughput(
             fleet.robots[0].latencies.clear()
             fleet.robots[0].action_periods.clear()
             cpu0 = fleet.loop.loop_cpu_seconds
+            parts0 = _inference_cpu(fleet)
         time.sleep(seconds)
         with fleet.lock:
             steps = fleet.loop.env_steps - steps0
@@ -162,6 +163,9 @@ def fleet_throughput(
             lat = np.array(fleet.robots[0].latencies)
             teleop_periods = np.array(fleet.robots[0].action_periods)
             cpu = fleet.loop.loop_cpu_seconds - cpu0
+            parts = {k: v - parts0.get(k, 0.0) for k, v in _inference_cpu(fleet).items()}
+            controller = next(iter(fleet.robots.values())).slot.controller
+            asking, signal_names = controller.asking, list(controller.signals)
         workers_cpu = processes_cpu_seconds(pids) - workers_cpu0
         others_cpu = processes_cpu_seconds(others) - others_cpu0
         if overhead is not None:
@@ -187,6 +191,16 @@ def fleet_throughput(
         # CPU the control loop spent per env step: policy, signals and bookkeeping (one thread)
         "loop_cpu_ms_per_env_step": cpu / max(steps, 1) * 1e3,
         "loop_cpu_share": cpu / seconds,
+        "env_steps_per_tick": steps / max(ticks, 1),
+        # the same CPU split: the policy's chunks, each signal (score, decision, explanation), and the rest,
+        # the loop's own (frames, recording, the control state, views); with inference on Ray the policy
+        # and the signals run in the actor, and the loop's own is all of the loop's CPU
+        "asking_signal": asking,
+        "policy_cpu_ms_per_env_step": parts.get("policy", 0.0) / max(steps, 1) * 1e3,
+        "signals_cpu_ms_per_env_step": {n: parts.get(n, 0.0) / max(steps, 1) * 1e3 for n in signal_names},
+        "loop_own_cpu_ms_per_env_step": (cpu - (sum(parts.values()) if inference == "local" else 0.0))
+        / max(steps, 1)
+        * 1e3,
         # CPU the physics processes spent per env step (stepping, building frames, pipes, switching)
         "workers_cpu_ms_per_env_step": workers_cpu / max(steps, 1) * 1e3,
         # CPU of the back end's other processes per env step (Ray's raylet, GCS and idle workers; ~0 else)
@@ -219,6 +233,49 @@ def fleet_throughput(
         "workers_rss_mb_per_robot": sum(rss) / n if rss else None,
         "workers_peak_rss_mb_per_robot": sum(peaks) / n if peaks else None,
     }
+
+
+def _inference_cpu(fleet: Fleet) -> dict[str, float]:
+    """CPU seconds so far per inference part ("policy", each signal), summed over the fleet's controllers."""
+    out: dict[str, float] = {}
+    controllers = {id(r.slot.controller): r.slot.controller for r in fleet.robots.values()}
+    for controller in controllers.values():
+        for part, seconds in controller.inference_cpu_s.items():
+            out[part] = out.get(part, 0.0) + seconds
+    return out
+
+
+COMPARED = (
+    "env_steps_per_s",
+    "share_of_raw",
+    "loop_cpu_ms_per_env_step",
+    "loop_own_cpu_ms_per_env_step",
+    "policy_cpu_ms_per_env_step",
+    "env_steps_per_tick",
+)
+
+
+def compare_with(report: dict, before: dict) -> dict:
+    """Each row of ``report`` beside the row of the same size and back end in ``before`` (the previous
+    release's result of this benchmark): the figures both hold, (before, now), and what made ``before``."""
+
+    def key(row: dict) -> tuple:
+        return row["robots"], row.get("backend") or row.get("worker") or "process"  # earlier files name "worker"
+
+    old = {key(r): r for r in before.get("sizes", [])}
+    rows = []
+    for row in report["sizes"]:
+        prev = old.get(key(row))
+        if prev is None:
+            continue
+        figures = {k: {"before": prev[k], "now": row[k]} for k in COMPARED if k in prev and k in row}
+        signals = {
+            n: {"before": prev["signals_cpu_ms_per_env_step"].get(n), "now": ms}
+            for n, ms in row.get("signals_cpu_ms_per_env_step", {}).items()
+            if n in prev.get("signals_cpu_ms_per_env_step", {})
+        }
+        rows.append({"robots": row["robots"], "backend": row["backend"], **figures, "signals": signals})
+    return {"before": before.get("provenance"), "rows": rows}
 
 
 def _ray_inference(fleet: Fleet):

@@ -1,7 +1,7 @@
 """``hitl bench floor``: the fewest operator steps any asking signal could need on a policy and task.
 
 The oracle (``bench.oracle``) asks from the simulator's privileged state, under the paper's protocol:
-``budget`` operator steps per request (4), the simulated operator (``policy.assisted.ExpertOperator``, in
+``budget`` operator steps per request (4), the simulated operator (``lab.assisted.ExpertOperator``, in
 the style the recipe names), every episode through the one ``Controller``. Per task:
 
 1. a sweep, on development seeds, of where the oracle asks (its windows and their reach) and for how
@@ -105,7 +105,7 @@ def run_floor_cell(cell: Cell) -> dict:
     import torch
 
     from bench.oracle import Oracle
-    from policy.assisted import AssistConfig, run_assisted
+    from lab.assisted import AssistConfig, run_assisted
     from policy.checkpoint import check_fits, load_policy
     from policy.signals import make_signal
 

@@ -4,7 +4,7 @@ same episodes in process.
 A real ``hitl serve`` process runs ``episodes`` robots of ``task`` (robot r's first episode has seed
 ``seed + 1000 r + 1``, the fleet's rule), asking with ``signal`` under the paper's protocol (budgeted
 4-step takeovers, no cooldown). ``hitl operator-bot`` (``OperatorBot``, the REST API only) answers
-every request. The same seeds then run in process through ``policy.assisted.run_assisted`` with the
+every request. The same seeds then run in process through ``lab.assisted.run_assisted`` with the
 same controller settings, and the per-episode numbers are compared.
 
 Two settings make the service's numbers independent of timing, so that they can be equal, not
@@ -106,7 +106,7 @@ def run_in_process(task: str, policy_dir: Path, seeds: list[int], signal: str, b
     """The same episodes through ``run_assisted`` with the service's controller settings."""
     import torch
 
-    from policy.assisted import AssistConfig, run_assisted
+    from lab.assisted import AssistConfig, run_assisted
     from policy.checkpoint import check_fits, load_policy
     from policy.signals import load_signal
 

@@ -1,6 +1,6 @@
 """``hitl report novelty``: how far each task's observations lie outside a policy's training range.
 
-This is the input that ``spread-stall`` decides on (``policy/signals/spread_stall.py``): a robot's scene
+This is the input that ``choice-stall`` decides on (``policy/signals/choice_stall.py``): a robot's scene
 is new once its observation novelty (``spread``'s novelty term, ``observation_novelty``) passes the
 signal's ``novelty_gate``. The policy rolls out autonomously on each task through the one controller
 (seeded; ``policy.signal_data.policy_rollouts``, cached next to the policy), and every visited state's

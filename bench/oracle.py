@@ -104,7 +104,7 @@ def in_window(window: str, reach: float, scene: Task, policy_steps: int) -> bool
 class Oracle(AssistanceSignal):
     """Asks while its robot's scene is in the configured window (``in_window``), up to ``requests``
     times per episode. ``watch`` gives it each robot's live task at the episode's start (the
-    ``on_reset`` hook of ``policy.assisted.run_assisted``); a robot it was not given never asks."""
+    ``on_reset`` hook of ``lab.assisted.run_assisted``); a robot it was not given never asks."""
 
     name = "oracle"
     Config = OracleConfig

@@ -2,7 +2,7 @@
 it finish on its own.
 
 For each takeover step k of a grid, every seed's episode runs on the policy through the one controller
-(``policy.assisted.run_assisted``); at its k-th policy step the robot asks once (``AtStep``), the
+(``lab.assisted.run_assisted``); at its k-th policy step the robot asks once (``AtStep``), the
 simulated operator (the task's scripted expert, from the operator view) drives it for ``budget`` steps,
 the paper's 4 by default, and the policy finishes alone. The same seeds also run with no takeover. The
 policy's sampling noise is seeded per episode, so up to step k a takeover episode is the autonomous one:
@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from policy.assisted import AssistConfig, run_assisted
+from lab.assisted import AssistConfig, run_assisted
 from policy.diffusion_policy import DiffusionPolicy
 from policy.signals.base import (
     AssistanceSignal,

@@ -56,7 +56,7 @@ def write_segment(path: Path, steps: list[tuple], mode: str, period_s: float) ->
     try:
         for obs, cmd, act, label, pos, quat, u, field in steps:
             t0 = time.perf_counter()
-            writer.write_step(obs, cmd, act, label, pos, quat, u, shadow={"spread-stall": 1.0}, field=field)
+            writer.write_step(obs, cmd, act, label, pos, quat, u, shadow={"choice-stall": 1.0}, field=field)
             times.append(time.perf_counter() - t0)
             time.sleep(period_s)  # the control period: an interval flush happens once a second, as served
     finally:

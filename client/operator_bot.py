@@ -1,7 +1,7 @@
 """The simulated operator as an API client: it watches the queue, claims the most urgent robot,
 drives it with the task's scripted expert from the operator view, and hands back.
 
-It drives as the in-process simulated operator does (``policy.assisted.ExpertOperator``): the expert
+It drives as the in-process simulated operator does (``lab.assisted.ExpertOperator``): the expert
 tries again when a grasp fails (``Expert.retry``), and it gives up, handing back, once the episode
 has run ``OVERTIME`` horizons of its clock, where the in-process episodes stop (``policy.lockstep``).
 
@@ -82,7 +82,7 @@ class OperatorBot:
         pace: HumanPace | None = None,
     ) -> None:
         """hands_back_when_held: release a robot once the object it was asked about is held (``Expert.holding``;
-        as ``policy.assisted.ExpertOperator`` does with it), instead of driving until the service hands back;
+        as ``lab.assisted.ExpertOperator`` does with it), instead of driving until the service hands back;
         style: how it plans at each request (``sim.experts.OperatorStyle``); pace: a person's delays (default:
         none, the bot answers at once)."""
         self.api = url.rstrip("/") + "/api/v1"
@@ -215,7 +215,7 @@ class OperatorBot:
 
     def _expert_for(self, robot_id: int, task: OperatorView, raw: dict, seed: int):
         """The expert driving this robot, as the in-process simulated operator has it
-        (``policy.assisted.ExpertOperator``): one per episode, re-planned at each request from the view,
+        (``lab.assisted.ExpertOperator``): one per episode, re-planned at each request from the view,
         in its style (``Expert.take_over``: episode seed, requests so far), carrying on with
         its plan when nothing moved the robot since its last command (the robot's clock is where that
         command left it)."""

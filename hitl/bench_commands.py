@@ -114,6 +114,7 @@ def _cmd_bench_hitl(args: argparse.Namespace) -> int:
 
 def _cmd_bench_hitl_service(args: argparse.Namespace) -> int:
     from bench.hitl_service import bench_hitl_service
+    from bench.provenance import stamped
     from sim.registry import TASKS
 
     if args.task not in TASKS:
@@ -133,7 +134,7 @@ def _cmd_bench_hitl_service(args: argparse.Namespace) -> int:
 
     out = bench_hitl_service(args.task, args.policy, args.episodes, args.signal, args.budget, not args.quiet)
     out["command"] = "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    print(json.dumps(out, indent=None if args.json else 2))
+    print(json.dumps(stamped(out), indent=None if args.json else 2))
     return 0 if out["identical"] else 1
 
 
@@ -166,12 +167,13 @@ def _cmd_bench_floor(args: argparse.Namespace) -> int:
 
 
 def _provenance() -> dict:
-    """The command line that made a result, the machine and the date."""
+    """The command line that made a result, its commit and date (``bench.provenance``), and the machine."""
+    from bench.provenance import provenance
+
     return {
-        "command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        **provenance(),
         "machine": f"{platform.machine()}, {_cpus()} CPU cores, {platform.python_implementation()} "
         f"{platform.python_version()}, no GPU used",
-        "date": datetime.date.today().isoformat(),
     }
 
 
@@ -282,6 +284,7 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
 
     from bench.finetune.report import markdown, plot, summarize
     from bench.finetune.run import FinetuneBenchConfig, run_bench
+    from bench.provenance import stamped
     from bench.report_sections import replace_section
     from policy.finetune import FinetuneConfig
 
@@ -317,6 +320,7 @@ def _cmd_bench_finetune(args: argparse.Namespace) -> int:
         "command": command,
         "machine": {"platform": platform.platform(), "date": datetime.date.today().isoformat()},
     }
+    stamped(result)
     if args.report:
         section = args.section or ("finetune-quick" if args.quick else "finetune")
         figure = plot(summary, Path(args.figures) / f"{section}.png")

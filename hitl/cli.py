@@ -4,12 +4,13 @@ Data and policies (this module, ``policy_commands``, ``signal_commands``; shared
   tasks         list the registered tasks with their observation and action specs
   demos         record scripted demonstrations as MCAP episodes
   inspect       check episode files (and salvage truncated ones with --recover)
-  experts       measure scripted-expert success and write the table to docs/
+  experts       measure scripted-expert success and write the table to docs/ (``lab.experts``)
   train         train a diffusion policy on demonstrations
   rollout       run a policy autonomously and report success and uncertainty
   calibrate     set the uncertainty threshold from held-out validation episodes
   train-signal  train an assistance signal's models (if any) and calibrate it
   assist        assisted rollouts: a driver signal asks the simulated operator, the others in shadow
+                (``lab.assisted``)
 The service (``server_commands``, ``registry_commands``):
   serve         run the fleet service with the operator console at /console/
   operator-bot  the simulated operator, claiming queued robots through the API
@@ -34,6 +35,7 @@ code is in ``bench/``):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -125,7 +127,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def _cmd_experts(args: argparse.Namespace) -> int:
-    from sim.demos import expert_table, score_experts
+    from lab.experts import expert_table, score_experts
     from sim.registry import TASKS
 
     tasks = args.task or list(TASKS)
@@ -196,12 +198,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# the benchmarks' and experiments' commands: they may name the lab's signals (``lab.signals``: ``spread-stall``);
+# the service's commands never can
+LAB_COMMANDS = frozenset({"bench", "report", "plot", "assist", "train-signal"})
+
+
+def _signals_for(command: str) -> contextlib.AbstractContextManager:
+    if command not in LAB_COMMANDS:
+        return contextlib.nullcontext()
+    from lab.signals import registered
+
+    return registered()
+
+
 def main(argv: list[str] | None = None) -> int:
     from storage.dataset import DatasetError
 
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        with _signals_for(args.command):
+            return args.func(args)
     except (KeyError, ValueError, FileNotFoundError, DatasetError) as exc:
         print(f"hitl {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -19,6 +19,7 @@ def _cmd_screenshots(args: argparse.Namespace) -> int:
 
 def _cmd_bench_console(args: argparse.Namespace) -> int:
     from bench.console import bench_console
+    from bench.provenance import stamped
 
     if not 1 <= args.browsers <= args.robots <= 64:
         raise ValueError(f"need 1 <= --browsers <= --robots <= 64, got {args.browsers} and {args.robots}")
@@ -38,6 +39,7 @@ def _cmd_bench_console(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     result["command"] = "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    stamped(result)
     text = json.dumps(result, indent=None if args.json else 2)
     print(text)
     if args.out:

@@ -134,6 +134,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 def _cmd_rollout(args: argparse.Namespace) -> int:
 
+    from bench.provenance import stamped
     from policy.evaluate import rollout_policy, summarize
 
     set_threads(args)
@@ -160,7 +161,7 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
         }
     out["per_episode"] = [e.summary() for e in episodes]
     if args.json:
-        print(json.dumps(out, indent=2))
+        print(json.dumps(stamped(out), indent=2))
     else:
         print(
             f"{args.task}: {out['successes']}/{out['episodes']} successful "

@@ -17,19 +17,14 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     import numpy as np
 
     from bench.figures import plot_field, plot_timeline
-    from policy.evaluate import context_for, rollout_policy
+    from bench.provenance import stamped
+    from lab.fields import context_for, rollout_fields
 
     policy, info, calibration = policy_with(args)
     threshold = calibration["threshold"] if calibration else None
     seeds = list(range(args.seed, args.seed + args.episodes))
-    episodes, _ = rollout_policy(
-        policy,
-        args.task,
-        seeds,
-        n_envs=min(4, len(seeds)),
-        uncertainty=uncertainty_config(args),
-        keep_fields=True,
-        progress=not args.quiet,
+    episodes, _ = rollout_fields(
+        policy, args.task, seeds, uncertainty_config(args), n_envs=min(4, len(seeds)), progress=not args.quiet
     )
     out = Path(args.out)
     first = episodes[0]
@@ -63,7 +58,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
                 "median_context": float(np.median(ctx)),
             }
         )
-    text = json.dumps(report, indent=2)
+    text = json.dumps(stamped(report), indent=2)
     path = args.report or out / f"{args.task}-uncertainty.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text + "\n")
@@ -74,9 +69,10 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from bench.provenance import stamped
     from bench.uncertainty import bench_uncertainty
+    from lab.fields import rollout_fields
     from policy.devices import prepare_for_serving
-    from policy.evaluate import rollout_policy
     from policy.signals import SignalError, load_signal
 
     set_threads(args)
@@ -91,14 +87,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         asking_skipped = f"spread not timed: {exc}"  # the default, where this policy has it
     task = args.task or info["task"]
     seeds = list(range(args.seed, args.seed + args.episodes))
-    episodes, _ = rollout_policy(
-        policy,
-        task,
-        seeds,
-        n_envs=min(4, len(seeds)),
-        uncertainty=uncertainty_config(args),
-        keep_fields=True,
-        progress=not args.quiet,
+    episodes, _ = rollout_fields(
+        policy, task, seeds, uncertainty_config(args), n_envs=min(4, len(seeds)), progress=not args.quiet
     )
     inputs = [x for ep in episodes for x in ep.probe_inputs]
     order = np.random.default_rng(0).permutation(len(inputs))
@@ -121,12 +111,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         "states_from": f"{task} rollouts, seeds {seeds[0]}..{seeds[-1]}",
         **result,
     }
-    print(json.dumps(result, indent=2 if not args.json else None))
+    print(json.dumps(stamped(result), indent=2 if not args.json else None))
     return 0
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
     set_threads(args)
+    from bench.provenance import stamped
     from bench.sanity import sanity_report
 
     episodes = {
@@ -140,7 +131,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(text)
-        Path(args.out).with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
+        Path(args.out).with_suffix(".json").write_text(json.dumps(stamped(results), indent=2) + "\n")
     print(text)
     return 0
 
@@ -148,7 +139,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def _write_report(report, out: Path | None) -> int:
     """Writes ``report`` (a ``to_dict``/``markdown`` report) as JSON to ``out``, with the command that
     made it, and prints its table."""
-    doc = {"command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]), **report.to_dict()}
+    from bench.provenance import stamped
+
+    doc = stamped({"command": "hitl " + " ".join(shlex.quote(a) for a in sys.argv[1:]), **report.to_dict()})
     if out:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(json.dumps(doc, indent=2) + "\n")
@@ -184,12 +177,12 @@ def _cmd_novelty(args: argparse.Namespace) -> int:
     set_threads(args)
     from bench.novelty import task_novelty
     from policy.checkpoint import check_fits, load_policy
-    from policy.signals.spread_stall import SpreadStallConfig
+    from policy.signals.choice_stall import ChoiceStallConfig
 
     policy, info = load_policy(args.policy)
     for task in dict.fromkeys(args.tasks):
         check_fits(info, task, args.policy)
-    gate = args.gate if args.gate is not None else SpreadStallConfig().novelty_gate
+    gate = args.gate if args.gate is not None else ChoiceStallConfig().novelty_gate
     report = task_novelty(policy, args.policy, args.tasks, args.episodes, args.seed, gate, progress=not args.quiet)
     return _write_report(report, args.out)
 
@@ -289,7 +282,7 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     q.add_argument("--tasks", nargs="+", required=True)
     q.add_argument("--episodes", type=positive_int, default=8, help="rollouts per task")
     q.add_argument("--seed", type=int, default=2000, help="first seed (default: the development seeds)")
-    q.add_argument("--gate", type=float, default=None, help="default: spread-stall's novelty_gate")
+    q.add_argument("--gate", type=float, default=None, help="default: choice-stall's novelty_gate")
     q.add_argument("--out", type=Path, help="JSON file to write (the markdown table is printed)")
     q.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all)")
     q.add_argument("--quiet", action="store_true")

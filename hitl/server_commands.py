@@ -78,6 +78,7 @@ def _cmd_bench_finetune_load(args: argparse.Namespace) -> int:
     import json
 
     from bench.finetune_load import bench_finetune_load
+    from bench.provenance import stamped
 
     result = bench_finetune_load(
         robots=args.robots,
@@ -89,7 +90,7 @@ def _cmd_bench_finetune_load(args: argparse.Namespace) -> int:
         idle_priority=not args.no_idle_priority,
         progress=not args.quiet,
     )
-    text = json.dumps(result, indent=None if args.json else 2)
+    text = json.dumps(stamped(result), indent=None if args.json else 2)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(text + "\n")
@@ -101,6 +102,7 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
     import json
 
     from bench.fleet import bench_fleet
+    from bench.provenance import stamped
     from policy.devices import check_device
     from server.settings import Settings
 
@@ -124,13 +126,22 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
         device=args.device,
         inference=tuple(dict.fromkeys(args.inference)),
     )
-    print(json.dumps(result, indent=None if args.json else 2))
+    if args.compare:
+        from bench.fleet import compare_with
+
+        result["compare"] = compare_with(result, json.loads(Path(args.compare).read_text()))
+    text = json.dumps(stamped(result), indent=None if args.json else 2)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text + "\n")
+    print(text)
     return 0
 
 
 def _cmd_bench_segments(args: argparse.Namespace) -> int:
     import json
 
+    from bench.provenance import stamped
     from bench.segments import bench_segments
 
     if not 10 <= args.steps <= 100_000:
@@ -140,7 +151,7 @@ def _cmd_bench_segments(args: argparse.Namespace) -> int:
     if args.dir is not None and not args.dir.is_dir():
         raise ValueError(f"--dir {args.dir} is not a folder")
     result = bench_segments(steps=args.steps, control_hz=args.control_hz, directory=args.dir, progress=not args.quiet)
-    print(json.dumps(result, indent=None if args.json else 2))
+    print(json.dumps(stamped(result), indent=None if args.json else 2))
     return 0
 
 
@@ -148,6 +159,7 @@ def _cmd_bench_api(args: argparse.Namespace) -> int:
     import json
 
     from bench.api import bench_api
+    from bench.provenance import stamped
 
     if not 1 <= args.robots <= 64:
         raise ValueError(f"--robots must be in 1..64, got {args.robots}")
@@ -172,7 +184,7 @@ def _cmd_bench_api(args: argparse.Namespace) -> int:
         api_workers=args.api_workers,
         progress=not args.quiet,
     )
-    print(json.dumps(result, indent=None if args.json else 2))
+    print(json.dumps(stamped(result), indent=None if args.json else 2))
     return 0
 
 
@@ -180,12 +192,13 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
     import json
 
     from bench.loop import run_loop
+    from bench.provenance import stamped
 
     if args.seconds <= 0:
         raise ValueError(f"--seconds must be positive, got {args.seconds}")
     env = _settings_env(args.set)
     result = run_loop(args.seconds, args.mode, args.config, args.data_dir, env, not args.no_bot, not args.quiet)
-    print(json.dumps(result, indent=None if args.json else 2))
+    print(json.dumps(stamped(result), indent=None if args.json else 2))
     return 0
 
 
@@ -193,6 +206,7 @@ def _cmd_bench_operators(args: argparse.Namespace) -> int:
     import json
 
     from bench.operators import OPERATORS_CONFIG, FleetMix, OperatorsPlan, Pace, run_operators
+    from bench.provenance import stamped
 
     plan = OperatorsPlan(
         sizes=tuple(args.sizes),
@@ -213,7 +227,7 @@ def _cmd_bench_operators(args: argparse.Namespace) -> int:
     if args.from_ is not None:  # an earlier run's report, drawn again (with --compare) and not rerun
         result = json.loads(args.from_.read_text())
     else:
-        result = run_operators(plan, args.data_dir, not args.quiet)
+        result = stamped(run_operators(plan, args.data_dir, not args.quiet))
     text = json.dumps(result, indent=None if args.json else 2)
     if args.out is not None and args.from_ is None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -244,6 +258,7 @@ def _cmd_bench_nights(args: argparse.Namespace) -> int:
 
     from bench.nights import NIGHTS_CONFIG, NightsPlan, run_nights
     from bench.nights_figure import plot_nights
+    from bench.provenance import stamped
 
     data_dir = args.data_dir or Path(tempfile.mkdtemp(prefix="hitl-nights-"))
     config, days, minutes, episodes = args.config or NIGHTS_CONFIG, args.days, args.day_minutes, args.day_episodes
@@ -275,6 +290,7 @@ def _cmd_bench_nights(args: argparse.Namespace) -> int:
 
     def write(report: dict) -> None:  # the report so far after every day and night, then the whole run's
         report |= {"quick": bool(args.quick), "command": command}
+        stamped(report)
         if args.out:
             Path(args.out).parent.mkdir(parents=True, exist_ok=True)
             Path(args.out).write_text(json.dumps(report, indent=2) + "\n")
@@ -356,6 +372,12 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         help="where the policy and the signals run (the setting): each back end is measured with each",
     )
     q.add_argument("--device", default="cpu", help="where the policy and the uncertainty run: cpu, cuda, cuda:N")
+    q.add_argument(
+        "--compare",
+        default=None,
+        help="the previous release's result of this benchmark (JSON): each figure both hold, before and now",
+    )
+    q.add_argument("--out", default=None, help="also write the JSON here (--compare is read first)")
     q.add_argument("--json", action="store_true")
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=_cmd_bench_fleet)
@@ -422,7 +444,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         "--set",
         action="append",
         metavar="KEY=VALUE",
-        help="a setting, e.g. signal=spread-stall (none unsets an optional one)",
+        help="a setting, e.g. signal=denoising (none unsets an optional one)",
     )
     q.add_argument("--data-dir", type=Path, default=None, help="where each size's service folder goes (default: temp)")
     q.add_argument("--out", type=Path, default=None, help="also write the JSON report here")

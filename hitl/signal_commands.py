@@ -135,7 +135,8 @@ def _names(value: str) -> list[str]:
 
 
 def _cmd_assist(args: argparse.Namespace) -> int:
-    from policy.assisted import AssistConfig, run_assisted, summarize_assisted
+    from bench.provenance import stamped
+    from lab.assisted import AssistConfig, run_assisted, summarize_assisted
     from policy.signals import SignalError
 
     policy, info = _load(args)
@@ -192,13 +193,14 @@ def _cmd_assist(args: argparse.Namespace) -> int:
             episodes[0], thresholds, args.plot / f"{out['task']}-signals.png", f"{out['task']}, seed {episodes[0].seed}"
         )
         out["figure"] = str(path)
-    print(json.dumps(out, indent=None if args.json else 2))
+    print(json.dumps(stamped(out), indent=None if args.json else 2))
     return 0
 
 
 def _cmd_bench_signals(args: argparse.Namespace) -> int:
     import torch
 
+    from bench.provenance import stamped
     from bench.signals import bench_signals
     from policy.checkpoint import load_policy
     from policy.signal_data import policy_rollouts
@@ -232,7 +234,7 @@ def _cmd_bench_signals(args: argparse.Namespace) -> int:
         **result,
         "skipped": skipped,
     }
-    print(json.dumps(out, indent=None if args.json else 2))
+    print(json.dumps(stamped(out), indent=None if args.json else 2))
     return 0
 
 

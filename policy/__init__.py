@@ -1,5 +1,5 @@
 """Diffusion policy, denoising-vector-field uncertainty, calibration, assistance signals, rollouts and
-fine-tuning (the benchmarks are in ``bench``).
+fine-tuning (the benchmarks are in ``bench``, their simulated operator's rollouts in ``lab``).
 
 - ``config``: the policy's typed configuration; ``networks``: FiLM-conditioned 1D temporal U-Net and MLP
   noise predictors; ``diffusion``: noise schedule, forward noising, DDIM steps; ``normalizer``: min-max
@@ -11,7 +11,8 @@ fine-tuning (the benchmarks are in ``bench``).
 - ``calibrate`` (the denoising threshold), ``heldout`` (are these the held-out episodes?), ``signal_data``
   and ``signals`` (the assistance signals behind one interface)
 - ``controller`` (the one control step; ``hand_back``: the names of its hand-back rule), ``inference``
-  (its batched network calls), ``lockstep``
-  (in-process robots around it), ``evaluate`` (autonomous rollouts), ``assisted`` (assisted rollouts)
+  (its batched network calls), ``lockstep`` (in-process robots around it), ``evaluate`` (autonomous
+  rollouts: ``hitl rollout`` and the fine-tuning job's evaluation); the assisted rollouts of the
+  benchmarks are in ``lab.assisted``
 - ``finetune``: fine-tuning on takeover data, its recalibration, evaluation and promotion gate
 """

@@ -186,6 +186,9 @@ class Controller:
         self.action_space = action_space
         self.config = config or ControllerConfig()
         self.inference = inference if inference is not None else LocalInference(policy, self.signals)
+        # CPU seconds the inference back end spent so far, per part ("policy", each signal): what a tick's
+        # network calls cost apart from the rest of the loop (``hitl bench fleet`` reports it)
+        self.inference_cpu_s: dict[str, float] = {}
         self._robots: dict[int, _Robot] = {}
 
     # -- robots ---------------------------------------------------------------------------------------
@@ -362,6 +365,8 @@ class Controller:
         except InferenceUnavailable as exc:
             self._hold_without_inference(ids, robots, frames, out, send, teleop, str(exc))
             return
+        for part, seconds in result.cpu_s.items():
+            self.inference_cpu_s[part] = self.inference_cpu_s.get(part, 0.0) + seconds
         for j in need:
             if not teleop[j]:
                 robots[j].queue.extend(result.plans[j, : cfg.n_action_steps].numpy().astype(np.float64))

@@ -4,7 +4,8 @@
 step in lockstep (``policy.lockstep``) through the fleet's ``Controller``: the
 policy and the uncertainty are called once per control step for the whole
 wave, and chunks are queued exactly as the fleet serves them. ``rollout_check`` measures a
-calibrated threshold on such rollouts (the share of steps above it).
+calibrated threshold on such rollouts (the share of steps above it). What the uncertainty figures
+keep of each step (its field, the probe's inputs) is the lab's (``lab.fields``, through ``on_step``).
 """
 
 from __future__ import annotations
@@ -14,15 +15,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
 from policy.calibrate import FLAG_SHARE
 from policy.controller import Controller, ControllerConfig, RobotStep
 from policy.diffusion_policy import DiffusionPolicy
-from policy.lockstep import run_lockstep
+from policy.lockstep import StepHook, run_lockstep
 from policy.signals.base import AssistanceSignal
 from policy.signals.sampling import DenoisingConfig, DenoisingSignal
-from policy.uncertainty import UncertaintyConfig, UncertaintyResult
+from policy.uncertainty import UncertaintyConfig
 from sim.env import Task
 from sim.registry import make_task
 
@@ -36,9 +36,6 @@ class PolicyEpisode:
     info: dict
     uncertainty: list[float] = field(default_factory=list)
     modes: list[int] = field(default_factory=list)
-    fields: list[UncertaintyResult] = field(default_factory=list)  # kept only when asked
-    context: list[float] = field(default_factory=list)  # task-specific signal per step (see CONTEXT)
-    probe_inputs: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # (obs history, centre)
     trace: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(
         default_factory=list
     )  # (obs history, current, action)
@@ -57,49 +54,24 @@ class PolicyEpisode:
         return out
 
 
-def _lift_context(task: Task) -> float:
-    return float(np.linalg.norm(task.ee_pose()[0] - task.privileged()["grasp_point"]))
-
-
-def _cup_context(task: Task) -> float:
-    s = task.privileged()
-    return float(np.linalg.norm(s["green_pos"][:2] - s["red_pos"][:2]))
-
-
-def _drawer_context(task: Task) -> float:
-    return float(np.min(np.linalg.norm(task.privileged()["handles"] - task.ee_pose()[0], axis=1)))
-
-
-# what to plot under the uncertainty timeline: (axis label, function of the task state)
-CONTEXT = {
-    "lift": ("gripper to object grasp point (m)", _lift_context),
-    "cup-stack": ("green to red cup, horizontal (m)", _cup_context),
-    "open-drawer": ("gripper to nearest handle (m)", _drawer_context),
-}
-
-
-def context_for(task_name: str):
-    return CONTEXT["lift" if task_name.startswith("lift") else task_name]
-
-
 def rollout_policy(
     policy: DiffusionPolicy,
     task_name: str,
     seeds: list[int],
     n_envs: int = 4,
     uncertainty: UncertaintyConfig | None = None,
-    keep_fields: bool = False,
     progress: bool = True,
     trace: bool = False,
     seed: int = 0,
     signals: Mapping[str, AssistanceSignal] | None = None,
+    on_step: StepHook | None = None,
 ) -> tuple[list[PolicyEpisode], dict]:
     """Runs one autonomous episode per seed through the controller; an episode ends at success or
     at the task horizon. ``uncertainty``: score the denoising metric at every step with these
-    settings (the fleet's shadow scoring); ``keep_fields`` keeps every step's field, probe inputs
-    and task context; ``trace`` keeps every step's observation history, probe centre and executed
-    action; ``seed``: the controller's sampling seed; ``signals``: scored in the shadow at every step
-    (none asks), their scores kept in ``signal_scores``. Returns (episodes, timing)."""
+    settings (the fleet's shadow scoring); ``trace`` keeps every step's observation history, probe
+    centre and executed action; ``seed``: the controller's sampling seed; ``signals``: scored in the
+    shadow at every step (none asks), their scores kept in ``signal_scores``; ``on_step``: told every
+    robot's step before it is applied (episode index, task, the decision). Returns (episodes, timing)."""
     shadow = dict(signals or {})
     signals = dict(shadow)
     if uncertainty is not None:
@@ -112,16 +84,12 @@ def rollout_policy(
         if step.uncertainty is not None:
             ep.uncertainty.append(step.uncertainty.U)
             ep.modes.append(step.uncertainty.n)
-            if keep_fields:
-                ep.fields.append(step.uncertainty)
-                center = policy.normalize_action(torch.as_tensor(step.current)).numpy()
-                ep.probe_inputs.append((step.obs, center))
-        if keep_fields:
-            ep.context.append(context_for(task.name)[1](task))
         if trace:
             ep.trace.append((step.obs, step.current, step.action.astype(np.float32)))
         if shadow and step.scores:
             ep.signal_scores.append({name: step.scores[name] for name in shadow})
+        if on_step is not None:
+            on_step(rid, task, step)
 
     start = time.perf_counter()
     outcomes = run_lockstep(

@@ -162,9 +162,7 @@ def pretraining_split(policy: DiffusionPolicy, info: dict, folder: str | Path) -
     A folder recorded again from the policy's recipe (the fine-tuning job does, on a machine without
     the data) may hold an episode whose scripted expert failed there although it succeeded where the
     policy was trained: the dataset leaves unsuccessful episodes out, and so does the split, naming
-    them in ``left_out``. Measured on the bundled cup-stack recipe: seed 129 succeeds in the data the
-    policy was trained on and times out, re-recorded, on this project's machines (deterministically:
-    three recordings, identical steps). More than ``MAX_LEFT_OUT`` of the named episodes missing, or
+    them in ``left_out``. More than ``MAX_LEFT_OUT`` of the named episodes missing, or
     any named episode missing for another reason, means the folder is not the policy's: refused."""
     folder = Path(folder)
     split = info.get("dataset", {})

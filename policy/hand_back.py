@@ -1,7 +1,7 @@
 """The hand-back rule's vocabulary: one name for each of its settings, wherever they appear.
 
 ``policy.controller.ControllerConfig`` (the rule itself), the service's settings
-(``server.settings.Settings``) and the assisted rollouts' ``policy.assisted.AssistConfig`` use these
+(``server.settings.Settings``) and the assisted rollouts' ``lab.assisted.AssistConfig`` use these
 names. A module of its own, with no import, so that reading the service's settings loads no torch.
 """
 

@@ -9,15 +9,13 @@ identify one:
   (``episode_digest``: the float32 observations and actions, nothing else), so an episode that is
   the same data is recognised whatever its file looks like. File sizes are no such evidence: a
   recording's timestamps start at the wall clock and its chunks are compressed, so the same steps,
-  recorded twice, give files of different sizes (measured: cup-stack seed 129 recorded three times
-  on one machine, 140,927, 141,499 and 141,297 bytes, every value equal). Older policies recorded
-  sizes (``val_episode_bytes``); they are not read.
+  recorded twice, give files of different sizes. Older policies recorded sizes
+  (``val_episode_bytes``); they are not read.
 - **Its provenance, where the content differs.** A folder that a fine-tuning job records again from
   the policy's recipe (``sim.demos.DemoRecipe``) on another machine is the same scripted expert on
   the same seeds with the same execution noise, but not always bit for bit the same data where the
-  machine, the simulator's build or the project's code differ: the bundled cup-stack recipe's seed 129
-  succeeded in the data the policy was trained on and times out, recorded again on this project's
-  machines (three recordings there, identical to each other). An episode whose own metadata says it
+  machine, the simulator's build or the project's code differ (an episode the expert succeeded in
+  where the policy was trained may time out, recorded again). An episode whose own metadata says it
   was recorded that way (task, seed, expert source, execution noise) counts as the held-out episode,
   recorded again, and the record says how many were identified that way (``by_recipe``).
 

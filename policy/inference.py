@@ -20,9 +20,10 @@ the policy drives for that step (operators' commands still go through) and asks 
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -71,13 +72,15 @@ class InferenceRequest:
 class InferenceResult:
     """plans: the request's, with the fresh chunks; scores: every signal's; wants: every calibrated
     signal's decision (B,); urgent: the asking signal's urgent requests (B,) or None; why: row -> the
-    asking signal's explanation, for the rows not under teleop where it wants help (those that may ask)."""
+    asking signal's explanation, for the rows not under teleop where it wants help (those that may ask);
+    cpu_s: the CPU time (of the computing thread) the policy's chunks and each signal took in this call."""
 
     plans: torch.Tensor
     scores: dict[str, Scores]
     wants: dict[str, np.ndarray]
     urgent: np.ndarray | None
     why: dict[int, str | None]
+    cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds of this call: "policy", each signal
 
 
 class Inference(ABC):
@@ -95,17 +98,30 @@ class Inference(ABC):
 def compute(policy: DiffusionPolicy, signals: Mapping[str, AssistanceSignal], req: InferenceRequest) -> InferenceResult:
     """What ``run`` answers, computed here with ``policy`` and ``signals``."""
     plans = req.plans
+    clock = time.thread_time()
+    cpu: dict[str, float] = {}
+
+    def spent(part: str) -> None:
+        nonlocal clock
+        now = time.thread_time()
+        cpu[part] = cpu.get(part, 0.0) + now - clock
+        clock = now
+
     with torch.no_grad():
         if req.need:
             plans[req.need] = policy.predict_action_chunk(req.obs[req.need], noise=req.noise).float().cpu()
+        spent("policy")
         batch = SignalInput(req.obs, req.current, req.robot_ids, action=plans, operator_action=req.operator)
-        scores = {name: s.score(batch) for name, s in signals.items()}
+        scores = {}
+        for name, s in signals.items():
+            scores[name] = s.score(batch)
+            spent(name)
     state = req.trigger_state()
-    wants = {
-        name: np.asarray(s.wants_help(scores[name], state), dtype=bool)
-        for name, s in signals.items()
-        if s.calibration is not None
-    }
+    wants = {}
+    for name, s in signals.items():
+        if s.calibration is not None:
+            wants[name] = np.asarray(s.wants_help(scores[name], state), dtype=bool)
+            spent(name)
     urgent, why = None, {}
     if req.asking is not None and req.asking in wants:
         signal = signals[req.asking]
@@ -114,7 +130,8 @@ def compute(policy: DiffusionPolicy, signals: Mapping[str, AssistanceSignal], re
         explain = getattr(signal, "explain", None)
         asks = np.flatnonzero(wants[req.asking] & ~state.teleop)  # only a robot the policy drives asks
         why = {int(j): explain(scores[req.asking], int(j)) if explain else None for j in asks}
-    return InferenceResult(plans, scores, wants, urgent, why)
+        spent(req.asking)
+    return InferenceResult(plans, scores, wants, urgent, why, cpu)
 
 
 class LocalInference(Inference):

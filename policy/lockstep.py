@@ -1,9 +1,12 @@
 """In-process simulated robots stepping in lockstep around the one ``Controller``.
 
-Autonomous evaluation and assisted rollouts both run their episodes here, in waves of ``n_envs``
-robots: each step builds every live robot's ``RobotFrame``, asks the simulated operator (if any) for
-commands for the robots it drives, calls ``Controller.step`` once for the whole wave, and applies the
-actions. Robot ids are the episodes' indices in ``seeds``.
+The product keeps it: the fine-tuning job evaluates and fits its candidates on these rollouts
+(``policy.evaluate``, ``policy.finetune``), and the operator bot gives up at its ``OVERTIME``.
+Autonomous evaluation and the lab's assisted rollouts (``lab.assisted``, which passes the simulated
+operator) both run their episodes here, in waves of ``n_envs`` robots: each step builds every live
+robot's ``RobotFrame``, asks the simulated operator (if any) for commands for the robots it drives,
+calls ``Controller.step`` once for the whole wave, and applies the actions. Robot ids are the
+episodes' indices in ``seeds``.
 """
 
 from __future__ import annotations

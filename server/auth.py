@@ -31,6 +31,11 @@ class Principal:
         return ROLES.index(self.role) >= ROLES.index(role)
 
 
+def forbidden(role: str, given: str) -> str:
+    """What a refusal for the lack of ``role`` says to someone who has ``given`` (the API and the console)."""
+    return f"this needs the {role} role; your token is {given}"
+
+
 def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 

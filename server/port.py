@@ -84,3 +84,17 @@ class FleetPort(Protocol):
 
 
 MEMBERS = frozenset(n for n in vars(FleetPort) if not n.startswith("_"))
+
+# the role each member that changes something needs, for the REST routes (``server.api``: each route's role
+# dependency, checked against this by tests/server/test_port.py) and the console (``web.actions``) alike
+NEEDS = {
+    "claim": "operator",
+    "heartbeat": "operator",
+    "command": "operator",
+    "release": "operator",
+    "pause": "admin",
+    "resume": "admin",
+    "reset": "admin",
+    "register_policy": "admin",
+    "activate_policy": "admin",
+}

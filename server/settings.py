@@ -3,30 +3,27 @@
 Environment variables win over the file (``HITL_PORT=9000``); ``DATABASE_URL`` (or
 ``HITL_DATABASE_URL``) selects the database, default SQLite in WAL mode under ``data_dir``.
 
-The hand-back rule's settings have the controller's names (``policy.hand_back.HAND_BACK_FIELDS``); their
-old names (``RENAMED``) are accepted, with a ``FutureWarning``, until the next release.
+The hand-back rule's settings have the controller's names (``policy.hand_back.HAND_BACK_FIELDS``); a name
+they had before (``REMOVED``), from a file, a ``HITL_*`` variable or a keyword, is refused with the new one.
 """
 
 from __future__ import annotations
 
-import inspect
 import os
 import tomllib
-import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import AliasChoices, BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import AliasChoices, BaseModel, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from policy.hand_back import HAND_BACK_FIELDS
 
 BUNDLED = Path(__file__).resolve().parents[1] / "policies"
 ENV_PREFIX = "HITL_"
-# old setting name -> new (the controller's) name: the old names are accepted, with a FutureWarning, from a
-# TOML file, a HITL_<OLD> variable or a keyword until the next release; an old and a new name together are refused
-RENAMED = dict(
+# a setting's name before the last release -> its name now (the controller's): the old one is refused, naming it
+REMOVED = dict(
     zip(("trigger_mode", "budget_steps", "auto_return_steps", "cooldown_steps"), HAND_BACK_FIELDS[:4], strict=True)
 )
 
@@ -325,7 +322,9 @@ class Settings(BaseSettings):
     @model_validator(mode="before")
     @classmethod
     def _old_names(cls, data: Any) -> Any:
-        return renamed(data) if isinstance(data, Mapping) else data
+        if isinstance(data, Mapping):
+            refuse_removed(data)
+        return data
 
     @classmethod
     def settings_customise_sources(
@@ -336,7 +335,7 @@ class Settings(BaseSettings):
         dotenv_settings: PydanticBaseSettingsSource,
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
-        return init_settings, env_settings, RenamedEnv(settings_cls), dotenv_settings, file_secret_settings
+        return init_settings, env_settings, RemovedEnv(settings_cls), dotenv_settings, file_secret_settings
 
     @model_validator(mode="after")
     def _robots_present(self) -> Settings:
@@ -369,80 +368,36 @@ class Settings(BaseSettings):
                 values = tomllib.loads(path.read_text())
             except tomllib.TOMLDecodeError as exc:
                 raise ValueError(f"{path}: invalid TOML: {exc}") from exc
-        # each source's old names first (a keyword's new name wins over a file's old one), then the usual order
-        given = {RENAMED[k]: k for k in [*values, *overrides] if k in RENAMED}
-        given |= {new: f"{ENV_PREFIX}{old.upper()}" for old, new in _old_variables(os.environ).items()}
-        values = renamed(values, f" in {path}" if path is not None else "")
-        overrides = renamed(overrides, " in the overrides")
+            refuse_removed(values, f" in {path}")
+        refuse_removed(overrides, " in the overrides")
         env = cls()  # environment only, to know which keys the environment sets
-        env_set = env.model_fields_set
-        merged = {**values, **{k: getattr(env, k) for k in env_set}, **overrides}
-        try:
-            return cls(**merged)
-        except ValidationError as exc:  # name a bad value by the old name it was given under, too
-            bad = {str(e["loc"][0]) for e in exc.errors() if e["loc"]}
-            notes = [f"{new!r} was given as {old!r}, its deprecated name" for new, old in given.items() if new in bad]
-            if not notes:
-                raise
-            raise ValueError(f"{exc}\n({'; '.join(notes)})") from exc
+        merged = {**values, **{k: getattr(env, k) for k in env.model_fields_set}, **overrides}
+        return cls(**merged)
 
 
-class RenamedEnv(PydanticBaseSettingsSource):
-    """``HITL_<OLD>`` variables of the renamed settings (``RENAMED``), under their new names: pydantic-settings
-    reads variables for declared fields only. Below the declared variables, which it refuses alongside."""
+class RemovedEnv(PydanticBaseSettingsSource):
+    """Refuses ``HITL_<OLD>`` variables of the removed names (``REMOVED``), naming the new variable:
+    pydantic-settings reads variables for declared fields only, so they would be ignored without a word."""
 
     def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:
         return None, field_name, False
 
     def __call__(self) -> dict[str, Any]:
-        env = {k.upper(): v for k, v in os.environ.items()}  # pydantic-settings reads them case-insensitively
-        out = {}
-        for old, new in _old_variables(env).items():
-            old_var, new_var = f"{ENV_PREFIX}{old.upper()}", f"{ENV_PREFIX}{new.upper()}"
-            if new_var in env:
-                raise ValueError(_both(old_var, new_var, " in the environment"))
-            _warn(_deprecated(old_var, new_var, " in the environment"))
-            out[new] = env[old_var]
-        return out
+        upper = {k.upper() for k in os.environ}  # pydantic-settings reads them case-insensitively
+        for old, new in REMOVED.items():
+            if f"{ENV_PREFIX}{old.upper()}" in upper:
+                raise ValueError(
+                    _removed(f"{ENV_PREFIX}{old.upper()}", f"{ENV_PREFIX}{new.upper()}", " in the environment")
+                )
+        return {}
 
 
-def renamed(values: Mapping[str, Any], where: str = "") -> dict[str, Any]:
-    """``values`` with each old name (``RENAMED``) replaced by its new name, with a ``FutureWarning``
-    naming the new one; an old and a new name given together are refused (ValueError naming both)."""
-    out = dict(values)
-    for old, new in RENAMED.items():
-        if old in out:
-            if new in out:
-                raise ValueError(_both(old, new, where))
-            _warn(_deprecated(old, new, where))
-            out[new] = out.pop(old)
-    return out
+def refuse_removed(values: Mapping[str, Any], where: str = "") -> None:
+    """ValueError naming the new name of the first removed name (``REMOVED``) among ``values``' keys."""
+    for old, new in REMOVED.items():
+        if old in values:
+            raise ValueError(_removed(old, new, where))
 
 
-def _old_variables(env: Mapping[str, str]) -> dict[str, str]:
-    """The renamed settings (old -> new) that the environment ``env`` sets under their old names."""
-    upper = {k.upper() for k in env}
-    return {old: new for old, new in RENAMED.items() if f"{ENV_PREFIX}{old.upper()}" in upper}
-
-
-def _deprecated(old: str, new: str, where: str = "") -> str:
-    return f"setting {old!r}{where} is deprecated: use {new!r} (the old name is accepted until the next release)"
-
-
-def _both(old: str, new: str, where: str = "") -> str:
-    return (
-        f"settings {old!r} and {new!r} both given{where}: {old!r} is the deprecated name of {new!r}; keep only {new!r}"
-    )
-
-
-def _warn(message: str) -> None:
-    """A FutureWarning (shown by default, on stderr) at the first caller outside this module and pydantic:
-    the code that gave the settings."""
-    frame, level = inspect.currentframe(), 1
-    while frame is not None and frame.f_back is not None and _internal(frame.f_code.co_filename):
-        frame, level = frame.f_back, level + 1
-    warnings.warn(message, FutureWarning, stacklevel=level)
-
-
-def _internal(filename: str) -> bool:
-    return filename == __file__ or bool({"pydantic", "pydantic_settings"} & set(Path(filename).parts))
+def _removed(old: str, new: str, where: str = "") -> str:
+    return f"setting {old!r}{where} was renamed: use {new!r}"

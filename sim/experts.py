@@ -190,13 +190,13 @@ class Expert:
     def holding(self, task: Task) -> bool:
         """Whether the scene shows what this expert grasps held (judged, as ``resume`` does, from what an
         operator sees): the point where an operator asked to help with a grasp hands the robot back
-        (``policy.assisted.ExpertOperator``). False for an expert that knows no such point."""
+        (``lab.assisted.ExpertOperator``). False for an expert that knows no such point."""
         return False
 
     def placed(self, task: Task) -> bool:
         """Whether the plan has brought the gripper to where it closes on the object and the gripper is still
         open: the pre-grasp pose, where an operator asked to place the gripper hands the robot back
-        (``policy.assisted.ExpertOperator``; ``hitl report pregrasp``)."""
+        (``lab.assisted.ExpertOperator``; ``hitl report pregrasp``)."""
         return bool(self.phases) and not self.done and self.phase == "close" and task.gripper_opening() >= GRIPPED
 
     def _index(self, name: str) -> int:

@@ -2,9 +2,8 @@
 
 A policy that sees an object only through a global pose and bounding box cannot tell, at an unseen object,
 whether its fingers are around something. The paper's wrist camera can, and there the lift "happens without
-intervention" once the gripper is placed. A rendered wrist depth image costs about 18 ms per step here; a few
-rays cast with ``mujoco.mj_ray`` from the fingers cost microseconds and carry the part of that image the grasp
-needs.
+intervention" once the gripper is placed. A few rays cast with ``mujoco.mj_ray`` from the fingers cost far
+less than a rendered wrist depth image and carry the part of that image the grasp needs.
 
 ``FingerRays.read`` returns ``RAYS`` distances in metres, in this order:
 

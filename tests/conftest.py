@@ -1,7 +1,19 @@
+import os
+
 import numpy as np
 import pytest
 
 from sim.registry import make_task
+
+
+def pytest_configure(config):
+    """Under ``pytest -n N`` (``make test``) the workers share the machine's cores: torch computes on one
+    thread in each, as oversubscribed OpenMP threads spin against each other (a 6 s training test took
+    two minutes beside another worker). Processes the tests start set their own threads."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        import torch
+
+        torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")

@@ -42,23 +42,15 @@ def tiny_policy(task: str = "lift-cube") -> DiffusionPolicy:
 
 
 def save_tiny_signals(policy, folder, threshold: float, info: dict | None = None) -> None:
-    """``spread`` (in the action space's own units) with ``threshold``, ``spread-stall``, that asks as that
-    ``spread`` does, and the fleet's default, ``choice-stall``, whose ``choice`` has ``threshold`` (metres):
-    their gates are never passed, so every scene counts as familiar (the untrained policy's observations
-    lie anywhere)."""
+    """``spread`` (in the action space's own units) with ``threshold``, and the fleet's default,
+    ``choice-stall``, whose ``choice`` has ``threshold`` (metres): its gate is never passed, so every scene
+    counts as familiar (the untrained policy's observations lie anywhere)."""
     from policy.signals import make_signal, save_signal
 
     spread_cal = {"threshold": threshold, "quantile": 0.95, "samples": 0, "spread_scale": 1.0}
     spread = make_signal("spread", policy, {"num_samples": 8})
     spread.calibration = spread_cal
     save_signal(spread, folder, info)
-    default = make_signal("spread-stall", policy, {"num_samples": 8, "novelty_gate": 1e9})
-    default.calibration = {
-        "threshold": 1.0,
-        "spread": spread_cal,
-        "stall": {"threshold": 0.5, "stride": 0.01},
-    }
-    save_signal(default, folder, info)
     choice = make_signal("choice-stall", policy, {"num_samples": 8, "novelty_gate": 1e9})
     choice.calibration = {
         "threshold": 1.0,
@@ -70,7 +62,7 @@ def save_tiny_signals(policy, folder, threshold: float, info: dict | None = None
 
 def tiny_policy_folder(folder, task: str, threshold: float, obs_labels: list[str] | None = None):
     """``tiny_policy`` saved as a policy folder with ``threshold`` as its calibration, for ``denoising``
-    (calibration.json), ``spread``, ``spread-stall`` and ``choice-stall`` (``save_tiny_signals``). ``obs_labels``: the
+    (calibration.json), ``spread`` and ``choice-stall`` (``save_tiny_signals``). ``obs_labels``: the
     observation layout its config.json records (``hitl train`` records the task's); None: none, as
     checkpoints written before layouts were recorded."""
     policy = tiny_policy(task)

@@ -1,7 +1,8 @@
 """The docs are a manual whose every result can be regenerated.
 
 - every result file under docs/results/ is written by a Make target's command (its path, or a loop or
-  variable that expands to it, is an output of some recipe line);
+  variable that expands to it, is an output of some recipe line), and each JSON one records its
+  provenance: the command, the commit and the date;
 - no JSON file under docs/ lies outside docs/results/;
 - every relative link and image in docs/**/*.md and README.md points to a file that exists, and every
   ``#anchor`` into a markdown file to one of its headings (GitHub's slugs);
@@ -144,6 +145,30 @@ def test_every_result_file_is_written_by_a_make_target():
     assert files, "no result files under docs/results/"
     orphans = [str(p.relative_to(ROOT)) for p in files if str(p.relative_to(ROOT)) not in produced]
     assert not orphans, "result files no Make target writes (add the command that made them):\n" + "\n".join(orphans)
+
+
+def test_every_result_file_names_its_command_commit_and_date():
+    """Each JSON result records what made it (``bench.provenance``): a non-empty command, the 40-hex commit
+    and an ISO 8601 date."""
+    import datetime
+    import json
+
+    bad = []
+    for path in (p for p in result_files() if p.suffix == ".json"):
+        prov = json.loads(path.read_text()).get("provenance")
+        prov = prov if isinstance(prov, dict) else {}
+        problems = []
+        if not str(prov.get("command") or "").strip():
+            problems.append("no command")
+        if not re.fullmatch(r"[0-9a-f]{40}", str(prov.get("commit") or "")):
+            problems.append(f"commit {prov.get('commit')!r}")
+        try:
+            datetime.datetime.fromisoformat(str(prov.get("date")))
+        except ValueError:
+            problems.append(f"date {prov.get('date')!r}")
+        if problems:
+            bad.append(f"{path.relative_to(ROOT)}: {', '.join(problems)}")
+    assert not bad, "result files without their provenance:\n" + "\n".join(bad)
 
 
 def test_the_makefile_parser_finds_redirections_options_and_loops():

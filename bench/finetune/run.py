@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from policy.assisted import AssistConfig, run_assisted
+from lab.assisted import AssistConfig, run_assisted
 from policy.checkpoint import check_fits, load_policy, read_info
 from policy.finetune import FinetuneConfig, TaskResult, evaluate_episodes, finetune_policy, pretraining_split
 from storage import keys

@@ -1,7 +1,7 @@
 """``hitl bench hitl``: how many human steps each assistance signal costs to bring episodes to success.
 
 The paper's protocol (``docs/benchmarks/hitl.md``): every episode runs through the fleet's ``Controller``
-(``policy.assisted.run_assisted``), batched across all of a task's episodes; the asking signal
+(``lab.assisted.run_assisted``), batched across all of a task's episodes; the asking signal
 decides when the robot asks; the simulated operator (the task's scripted expert, driving from the
 operator view only) answers with ``budget`` steps of delta-pose and gripper commands per request.
 
@@ -217,7 +217,7 @@ def run_cell(cell: Cell, threads: int | None = 1) -> dict:
     """Runs one cell (in a worker process or here) and returns its JSON-able result."""
     import torch
 
-    from policy.assisted import AssistConfig, run_assisted
+    from lab.assisted import AssistConfig, run_assisted
     from policy.checkpoint import check_fits, load_policy
     from policy.signals import SignalError
 

@@ -7,12 +7,12 @@ operator steps change the outcome. On the drawer it is the policy's first step, 
 drawer; on the lift shifts it is the grasp of an object the policy never saw, where it stops above
 the object; on cup-stack the insertion, where its targets spread around the hidden cup. ``choice``
 finds the first and the last (the policy's own samples disagree on where to go), ``stall`` the
-second; on a new scene ``choice`` is extrapolation, as ``spread`` was (docs/signals.md, "spread-stall").
+second; on a new scene ``choice`` is extrapolation.
 
-Which half asks is decided as ``spread-stall`` decides it: a robot's scene is new once its
-observation lies outside the range of the demonstrations the signal was calibrated on by more than
-``novelty_gate`` (in units of that range, averaged over dimensions; ``policy.signals.spread``), and
-the decision is kept to the end of the episode. The gate, 0.15, is ``spread-stall``'s, measured there.
+Which half asks: a robot's scene is new once its observation lies outside the range of the
+demonstrations the signal was calibrated on by more than ``novelty_gate`` (in units of that range,
+averaged over dimensions; ``policy.signals.spread``), and the decision is kept to the end of the
+episode (docs/signals.md gives the gate's measurement).
 
 The score is the asking half's score over its own threshold, so the threshold is 1 (comparable across
 tasks for the queue). Hand-back: ``choice``'s two thresholds (``return_ratio``) on a familiar scene,

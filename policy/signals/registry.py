@@ -21,22 +21,33 @@ from policy.signals.critics import HulaSignal, ThriftySignal
 from policy.signals.reference import FullTeleopSignal, RandomSignal
 from policy.signals.sampling import DenoisingSignal, DiffDaggerSignal, OutputVarianceSignal, StacSignal
 from policy.signals.spread import SpreadSignal
-from policy.signals.spread_stall import SpreadStallSignal
 from policy.signals.stall import StallSignal
 
+# every signal the fleet can be configured with (``signal = <name>``), each in one line
 SIGNALS: dict[str, type[AssistanceSignal]] = {
+    # the paper's metric: Gaussian mixtures fit to the denoising vectors in a ball around the pose (U = D + α·Var_g)
     "denoising": DenoisingSignal,
+    # baseline: the variance of sampled action chunks' positions
     "output-variance": OutputVarianceSignal,
+    # baseline (Diff-DAgger): the diffusion loss of the policy's own action
     "diff-dagger": DiffDaggerSignal,
+    # baseline (ThriftyDAgger): ensemble novelty and a learned Q-risk, with its switch-back rule
     "thrifty": ThriftySignal,
+    # baseline (STAC): the MMD between consecutive steps' sampled chunks on their overlap, summed over the episode
     "stac": StacSignal,
+    # baseline (HULA, offline): the variance of an ensemble CQL critic's value estimate
     "hula-offline": HulaSignal,
+    # the field read at a noise level k > 0 around the policy's next action, plus observation novelty
     "spread": SpreadSignal,
+    # the policy stops making progress: its next action barely moves the end effector, gripper open
     "stall": StallSignal,
-    "spread-stall": SpreadStallSignal,
+    # the policy's own sampled targets lie on both sides of the gripper: a choice of which way to go
     "choice": ChoiceSignal,
+    # the fleet's default: ``choice`` on a scene the policy knows, ``stall`` on a new one
     "choice-stall": ChoiceStallSignal,
+    # reference: the operator drives every step
     "full-teleop": FullTeleopSignal,
+    # reference: asks at random steps at a set rate (to match another signal's rate against)
     "random": RandomSignal,
 }
 

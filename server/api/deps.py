@@ -13,7 +13,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import sessionmaker
 
-from server.auth import Principal, TokenCache
+from server.auth import Principal, TokenCache, forbidden
 from server.port import FleetPort
 
 _bearer = HTTPBearer(auto_error=False)
@@ -76,9 +76,7 @@ def require(role: str):
     ) -> Principal:
         principal = await _principal(request, creds)
         if not principal.has(role):
-            raise HTTPException(
-                status.HTTP_403_FORBIDDEN, f"this needs the {role} role; your token is {principal.role}"
-            )
+            raise HTTPException(status.HTTP_403_FORBIDDEN, forbidden(role, principal.role))
         return principal
 
     dependency.role = role  # routes behind it answer 401 and 403 (server.api.responses.AUTH)

@@ -23,14 +23,16 @@ router = APIRouter(tags=["policies"])
 
 def _out(fleet, rows) -> list[PolicyOut]:
     """The rows, each with the robots running it and, for those it runs, its asking signal and threshold
-    (the row's ``threshold`` is the paper's denoising one)."""
+    (the row's ``threshold`` is the paper's denoising one: ``paper_threshold``)."""
     running: dict[int, list[int]] = {}
     asking: dict[int, dict] = {}
     for r in fleet.views():
         running.setdefault(r.slot.version, []).append(r.id)
         asking[r.slot.version] = {"asking_signal": r.slot.asking or None, "asking_threshold": r.slot.asking_threshold}
     return [
-        PolicyOut.model_validate(row).model_copy(update={"robots": running.get(row.id, [])} | asking.get(row.id, {}))
+        PolicyOut.model_validate(row).model_copy(
+            update={"robots": running.get(row.id, []), "paper_threshold": row.threshold} | asking.get(row.id, {})
+        )
         for row in rows
     ]
 

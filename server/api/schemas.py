@@ -178,11 +178,12 @@ class RobotSummary(BaseModel):
     episode_id: int | None
     episode_step: int
     uncertainty: float | None = Field(
-        description="the asking signal's score (``asking.score``: while the robot waits, the queue entry's "
-        "``uncertainty``); the paper's U is ``paper.U``"
+        deprecated=True,
+        description="deprecated, removed in the next release: ``asking.score`` (the paper's U is ``paper.U``)",
     )
     threshold: float | None = Field(
-        description="the asking signal's threshold (``asking.threshold``); the paper's is ``paper.threshold``"
+        deprecated=True,
+        description="deprecated, removed in the next release: ``asking.threshold`` (the paper's: ``paper.threshold``)",
     )
     asking: AskingOut
     paper: PaperMetricOut | None = Field(description="the paper's denoising metric; null: the version has none")
@@ -232,7 +233,7 @@ class AssistanceRequestOut(BaseModel):
         description="the signal that asked; 'watchdog' for the watchdog; null for help requested through the service"
     )
     score: float = Field(description="its score when the robot asked (1 for the watchdog and requested help)")
-    uncertainty: float = Field(description="the same as ``score`` (the asking signal's, not the paper's U)")
+    uncertainty: float = Field(deprecated=True, description="deprecated, removed in the next release: ``score``")
     threshold: float = Field(description="the asking signal's threshold (1 for the watchdog and requested help)")
     reason: str = Field(description="why it asked: the signal's name and its words, or the watchdog's")
     waiting_s: float
@@ -328,7 +329,10 @@ class PolicyOut(BaseModel):
     ref: str
     path: str
     task: str
-    threshold: float | None = Field(description="the paper's denoising threshold (its calibration)")
+    paper_threshold: float | None = Field(None, description="the paper's denoising threshold (its calibration)")
+    threshold: float | None = Field(
+        deprecated=True, description="deprecated, removed in the next release: ``paper_threshold``"
+    )
     asking_signal: str | None = Field(
         None, description="the signal that asks for help for the robots running it (null: no robot runs it now)"
     )

@@ -6,14 +6,13 @@ expires the request returns to the queue (the robot holds meanwhile). Thread-saf
 **Order.** ``priority = urgency + waited / wait_scale`` (``wait_scale`` 10 s), highest first, claimed
 requests last. The urgency says how far the asking score is over its threshold, as a fraction of the
 score: ``1 - threshold / score`` when ``score > threshold > 0``, so it lies in [0, 1) whatever the
-signal's scale, and within one signal a higher score still ranks first. Signals' scales differ by
-orders of magnitude (``spread`` reads ~1,100x its threshold on lift-hammer, 1.3x on open-drawer: 0.999
-and 0.23 here); ranked by ``score / threshold``, as before, a fresh lift-hammer request went ahead of
-an open-drawer robot that had waited up to three hours. A request that gives no scale to measure the
-score against has urgency 0 and ranks by its wait alone: the watchdog's and an operator's requests
-(opened with score = threshold = 1: at the threshold, where the old rule put them too and where a
-score's urgency is 0), a threshold that is not positive and finite (a signal told to ask at every
-step, or one whose zero means nothing), a score that is NaN. A score of +inf has urgency 1.
+signal's scale, and within one signal a higher score still ranks first: signals' scales differ by
+orders of magnitude, and ranked by ``score / threshold`` a fresh request of one signal far over its
+threshold would go ahead of another's that has waited for hours. A request that gives no scale to
+measure the score against has urgency 0 and ranks by its wait alone: the watchdog's and an
+operator's requests (opened with score = threshold = 1, where a score's urgency is 0), a threshold
+that is not positive and finite (a signal told to ask at every step, or one whose zero means nothing),
+a score that is NaN. A score of +inf has urgency 1.
 
 **No robot starves.** Two urgencies differ by at most 1, so a request opened more than
 ``wait_scale`` after request A never ranks ahead of A while A waits. Once A has waited ``wait_scale``,
@@ -96,12 +95,12 @@ class AskRecord:
 
 @dataclass
 class AssistanceRequest:
-    """One robot's open request: ``uncertainty`` is the asking signal's score (``AskRecord.score``), and
+    """One robot's open request: ``score`` and ``threshold`` are the asking signal's (``AskRecord``), and
     ``ask`` the record it was opened with."""
 
     id: int
     robot_id: int
-    uncertainty: float
+    score: float
     threshold: float
     reason: str
     created: float = field(default_factory=time.monotonic)
@@ -119,12 +118,12 @@ class AssistanceRequest:
     @property
     def ask(self) -> AskRecord:
         """The record this request was opened with."""
-        return AskRecord(self.signal, self.uncertainty, self.threshold, self.reason, self.asked_at_step, self.paper_u)
+        return AskRecord(self.signal, self.score, self.threshold, self.reason, self.asked_at_step, self.paper_u)
 
     def priority(self, now: float, wait_scale: float = WAIT_SCALE_S) -> float:
         """Higher first: the urgency (in [0, 1], whatever the signal's scale) plus one unit per
         ``wait_scale`` seconds waited; finite for every score and threshold (see the module)."""
-        return urgency(self.uncertainty, self.threshold) + (now - self.created) / wait_scale
+        return urgency(self.score, self.threshold) + (now - self.created) / wait_scale
 
 
 def _sort_key(order: str, now: float):
@@ -132,7 +131,7 @@ def _sort_key(order: str, now: float):
     if order == "priority":
         return lambda r: (-r.priority(now), r.created)
     if order == "cur":
-        return lambda r: (r.signal != WATCHDOG, -urgency(r.uncertainty, r.threshold), r.created)
+        return lambda r: (r.signal != WATCHDOG, -urgency(r.score, r.threshold), r.created)
     if order == "fcfs":
         return lambda r: r.created
     raise ValueError(f"unknown queue order {order!r}: one of {', '.join(QUEUE_ORDERS)}")

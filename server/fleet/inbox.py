@@ -6,11 +6,13 @@ reset or request for help is put here, and the loop applies them in order at the
 tick (``Lifecycle.apply_inbox``), before it steps anyone; operator commands wait here too, composed
 (``server.fleet.commands``), and the tick that steps the robot applies them.
 
-Claims and releases are decided where they are decided, in the assistance queue under its own lock (who
-holds the robot, the lease), so those calls never wait for a tick; the robot's view shows the change
-once the tick has applied it. An admin's action waits for the tick that applies it, and gets its answer
-or its error from there (``Ticket``); with no loop running (before the service starts, or a test that
-drives ticks by hand) the caller applies the inbox itself, under the fleet lock.
+Claims and releases are decided in the assistance queue under its own lock (who holds the robot, the
+lease); a claimant's commands are accepted from then on, and wait for the tick that applies the claim.
+While the loop runs the call waits for that tick (``HANDOVER_WAIT_S`` at most: a tick in progress is not
+cut short), so a claimant who is answered sees the robot under teleop. An admin's action waits for the
+tick that applies it, and gets its answer or its error from there (``Ticket``); with no loop running
+(before the service starts, or a test that drives ticks by hand) the caller applies the inbox itself,
+under the fleet lock. A claim or release made with no loop running is applied by the next tick.
 
 A handover is applied only if the queue still agrees when the tick comes: a claim whose request has
 ended (the episode ended, the robot was reset) or whose lease has run out in between changes nothing,
@@ -29,12 +31,20 @@ from server.fleet.commands import CommandMailbox
 from sim.spaces import TeleopCommand, TeleopLimits
 
 ADMIN_WAIT_S = 10.0  # how long an admin's action waits for the tick that applies it
+HANDOVER_WAIT_S = 2.0  # how long a claim or a release waits for it (then answers; the next tick applies it)
 
 
 @dataclass(frozen=True)
 class Handover:
+    """A claim or a release the queue has decided; ``applied`` is set once a tick has looked at it."""
+
     kind: Literal["claim", "release"]
     operator: str
+    applied: threading.Event = field(default_factory=threading.Event, compare=False, repr=False)
+
+    def wait(self, timeout: float = HANDOVER_WAIT_S) -> bool:
+        """Whether a tick applied it within ``timeout`` (the lease is held either way)."""
+        return self.applied.wait(timeout)
 
 
 @dataclass

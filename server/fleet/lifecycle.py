@@ -1,6 +1,6 @@
 """A fleet robot's life: its worker, its episodes and its takeovers, one transition per method.
 
-The control loop (``server.fleet.loop``) and the operators' actions (``server.fleet.operators``) both
+The control loop (``server.fleet.loop``) and the actions it applies from the robots' inboxes both
 change a robot through these transitions, always under the fleet lock: a worker is spawned, faults
 and restarts with backoff (``RESTART_BACKOFF``); an episode opens on the policy version its lineage is
 assigned (``server.fleet.policy_swap``), ends on its own (success, the horizon) or is interrupted (a
@@ -16,7 +16,7 @@ import time
 
 from policy.hitl_state import Mode
 from server.fleet.assistance import AskRecord, AssistanceQueue
-from server.fleet.inbox import Ticket
+from server.fleet.inbox import Handover, Ticket
 from server.fleet.metrics import OperatorClock
 from server.fleet.policy_swap import PolicySwap
 from server.fleet.recording import Recorder
@@ -115,19 +115,24 @@ class Lifecycle:
         admin actions, and claims and releases each only if the queue still has its operator holding the
         robot. By the loop at the start of a tick (fleet lock held), before it steps anyone."""
         items = robot.inbox.take()
-        for item in items:
-            if isinstance(item, Ticket):
-                item.apply()
-                continue
-            req = self.queue.get(robot.id)
-            if req is None or req.holder != item.operator:  # the request ended or the lease ran out meanwhile
-                continue
-            if item.kind == "claim":
-                self.take_over(robot, item.operator, req.ask)
-            else:
-                self.hand_back(robot)
-        if items:
-            robot.publish()
+        try:
+            for item in items:
+                if isinstance(item, Ticket):
+                    item.apply()
+                    continue
+                req = self.queue.get(robot.id)
+                if req is None or req.holder != item.operator:  # the request ended or the lease ran out meanwhile
+                    continue
+                if item.kind == "claim":
+                    self.take_over(robot, item.operator, req.ask)
+                else:
+                    self.hand_back(robot)
+            if items:
+                robot.publish()
+        finally:
+            for item in items:
+                if isinstance(item, Handover):
+                    item.applied.set()  # its caller answers now, having seen what the tick made of it
 
     def take_over(self, robot: Robot, operator: str, ask: AskRecord) -> None:
         """``operator`` holds the robot's request (``ask``: its record): a waiting robot goes under their

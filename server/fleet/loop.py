@@ -35,9 +35,8 @@ from storage import keys
 log = logging.getLogger("hitl.fleet")
 
 # free-running (control_hz = 0): a tick waits (up to 50 ms) for this share of the busy workers to answer,
-# or for a teleoperated robot (its operator's command waits for it). Stepping each robot as soon as it
-# answered made ticks of ~5 of 16 robots, and DDIM's ten network calls per tick cost nearly as much for 5
-# robots as for 16.
+# or for a teleoperated robot (its operator's command waits for it): a batched network call costs nearly
+# as much for a few robots as for many, so stepping each robot as soon as it answered wastes it.
 FREE_RUN_BATCH = 0.5
 NOT_STEPPED = (Mode.PAUSED, Mode.FAULTED)
 
@@ -82,9 +81,7 @@ class ControlLoop:
                 start = time.monotonic()
                 if not period:  # free-running: block until enough workers answer (a batch), never spin
                     workers = [r.worker for r in self.robots.values() if r.worker is not None]
-                    teleop = [
-                        r.worker for r in self.robots.values() if r.worker is not None and r.mode == Mode.TELEOP
-                    ]
+                    teleop = [r.worker for r in self.robots.values() if r.worker is not None and r.mode == Mode.TELEOP]
                     wait_any(workers, 0.05, math.ceil(FREE_RUN_BATCH * sum(w.busy for w in workers)), teleop)
                 cpu = time.thread_time()
                 try:
@@ -160,9 +157,7 @@ class ControlLoop:
         # stepped when ``freeze_idle``: their scene waits with them, and their frame stays current
         idle = set()
         if self.settings.freeze_idle:
-            idle = {
-                r.id for r in robots if r.mode == Mode.WAITING or (r.mode == Mode.TELEOP and r.id not in commands)
-            }
+            idle = {r.id for r in robots if r.mode == Mode.WAITING or (r.mode == Mode.TELEOP and r.id not in commands)}
 
         def send(rid: int, action: np.ndarray, source: str) -> None:
             if rid in idle:

@@ -1,7 +1,7 @@
 """Fleet metrics: the figures of the API's ``/metrics/fleet`` (``MetricsReport``), and the operators' time
 in control that they are made of (``OperatorClock``).
 
-The operators' clock is kept where takeovers start and end (``server.fleet.operators``: a first claim;
+The operators' clock is kept where takeovers start and end (``server.fleet.fleet``: a first claim;
 ``server.fleet.lifecycle``: a takeover's end, a lease that ran out); the queue keeps its own waits. The
 episode totals come from one aggregate query over the recorded episodes (``Recorder.totals``), run
 outside the fleet lock, so a metrics request never holds up a tick.

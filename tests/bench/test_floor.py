@@ -7,7 +7,7 @@ from bench.floor import FloorRecipe, grid, reasks
 from bench.hitl.run import BenchError
 from bench.oracle import Oracle, OracleConfig, in_window, task_windows
 from hitl.cli import main
-from policy.assisted import AssistConfig, run_assisted
+from lab.assisted import AssistConfig, run_assisted
 from tests.helpers import tiny_policy, tiny_policy_folder
 
 

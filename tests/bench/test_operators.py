@@ -108,9 +108,16 @@ def test_a_tiny_sweep_through_the_service_with_the_bot_at_a_persons_pace(tmp_pat
     assert size["queue_wait"]["n"] >= 2 and size["queue_wait"]["max_s"] >= 0.2  # the claim delay, at least
     assert 0 < size["utilisation"] <= 1.0  # busy time counted inside the run's window only
     assert size["clock"]["control_hz"] == 10 and not size["clock"]["slowed"] and size["clock"]["ticks"] > 0
-    assert size["per_task"]["lift-cube"]["operator_steps"] >= 0
+    # each request got the budget's 2 operator steps (the last one maybe cut by the window's end): the
+    # steps the store recorded, counted against the takeovers it recorded and the commands the bot sent
+    lift = size["per_task"]["lift-cube"]
+    assert lift["takeovers"] >= 2 and 2 * (lift["takeovers"] - 1) <= lift["operator_steps"] <= 2 * lift["takeovers"]
+    assert lift["operator_steps"] <= size["operator"]["commands"]
     assert out["plan"]["pace_ticks"] == {"claim": 2, "switch": 3, "min_takeover": 4}
-    assert out["robots_per_operator"] == (2 if keeps_up(size, ["lift-cube"]) else None)
+    # no lift-cube episode ends in 100 ticks (its horizon is 150 and 2-step help cannot lift the cube), so
+    # no success rate exists to meet the goal: no size keeps up
+    assert size["episodes"] == 0 and size["success_rate"] is None and not keeps_up(size, ["lift-cube"])
+    assert out["robots_per_operator"] is None
 
 
 def test_the_figure_draws_each_run_against_the_fleets_size(tmp_path):

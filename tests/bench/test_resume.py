@@ -4,7 +4,7 @@ import pytest
 
 from bench.resume import AtStep, AtStepConfig, task_resume
 from hitl.cli import main
-from policy.assisted import AssistConfig, run_assisted
+from lab.assisted import AssistConfig, run_assisted
 from tests.helpers import tiny_policy, tiny_policy_folder
 
 

@@ -13,16 +13,44 @@ from storage.episodes import EpisodeWriter
 OBS_DIM = 5
 
 
-def _episodes(folder, lengths):
+QUAT = np.array([1.0, 0, 0, 0])
+
+
+def _episodes(folder, lengths, written=None):
+    """Episodes of ``lengths`` steps; ``written`` (a dict) gets, per file name, what each step wrote: the
+    observation, the end-effector position and the gripper command in force (the previous action's, open
+    at the first step)."""
     rng = np.random.default_rng(0)
     for i, n in enumerate(lengths):
-        w = EpisodeWriter(folder / f"ep{i:02d}.mcap", {"task": "unit", "seed": i}, object_names=[])
+        name = f"ep{i:02d}.mcap"
+        w = EpisodeWriter(folder / name, {"task": "unit", "seed": i}, object_names=[])
+        steps = []
         for t in range(n):
-            quat = np.array([1.0, 0, 0, 0])
             act = np.r_[rng.uniform(-0.1, 0.1, 3), [0, 1, 0, -1, 0, 0], [1.0 if t > 2 else -1.0]]
-            w.write_step(t, rng.normal(size=OBS_DIM), act, act[:3], quat, 0.04, t == n - 1, keys.SOURCE_EXPERT, {})
+            obs = rng.normal(size=OBS_DIM)
+            w.write_step(t, obs, act, act[:3], QUAT, 0.04, t == n - 1, keys.SOURCE_EXPERT, {})
+            steps.append((obs, act[:3], 1.0 if t > 3 else -1.0))  # action t-1's gripper: closed from t = 3 on
         w.finish(True, n, "success")
+        if written is not None:
+            written[name] = steps
     return folder
+
+
+def _u_of_steps(policy, steps, cfg, batch=64):
+    """U at each step, scored here from what the episodes wrote: the observation, and a probe centred on
+    the end effector's pose with the gripper command in force; in batches of ``batch`` steps, in order
+    (the estimator's probe depends on its seed and call order)."""
+    from policy.uncertainty import UncertaintyEstimator
+    from sim.rotations import quat_to_rot6d
+
+    rot = quat_to_rot6d(QUAT)
+    estimator, out = UncertaintyEstimator(cfg), []
+    for i in range(0, len(steps), batch):
+        part = steps[i : i + batch]
+        obs = torch.tensor(np.stack([o for o, _, _ in part]), dtype=torch.float32)[:, None]  # obs_horizon 1
+        center = torch.tensor(np.stack([np.r_[pos, rot, g] for _, pos, g in part]), dtype=torch.float32)
+        out.append(estimator(policy.noise_prediction, obs, policy.normalize_action(center)).U.numpy())
+    return np.concatenate(out)
 
 
 def _policy(folder):
@@ -39,16 +67,23 @@ def _policy(folder):
 
 
 def test_calibration_uses_only_the_validation_episodes(tmp_path):
-    folder = _episodes(tmp_path / "demos", [7, 9, 11, 13, 15, 17, 19, 21, 23, 25])
+    written = {}
+    folder = _episodes(tmp_path / "demos", [7, 9, 11, 13, 15, 17, 19, 21, 23, 25], written)
     policy, info, ds = _policy(folder)
     cfg = UncertaintyConfig(num_samples=32)
-    rec = calibrate(policy, info, folder, 0.5, cfg, progress=False)
+    rec = calibrate(policy, info, folder, 0.95, cfg, progress=False)
     val, train = info["dataset"]["val_episodes"], info["dataset"]["train_episodes"]
     assert list(rec.episodes) == val and not set(val) & set(train)
-    lengths = {name: int(e - s) for name, s, e in zip(ds.names, ds.episode_starts, ds.episode_ends, strict=True)}
-    assert rec.samples == sum(lengths[n] for n in val)
-    assert rec.threshold == pytest.approx(rec.u_median)  # the quantile of U over those steps
-    assert rec.u_mean <= rec.u_max and rec.uncertainty == cfg
+    assert rec.samples == sum(len(written[n]) for n in val)
+    # the threshold is the quantile of U over the validation steps, scored here from what they wrote
+    u = _u_of_steps(policy, [step for n in val for step in written[n]], cfg)
+    assert rec.threshold == pytest.approx(float(np.quantile(u, 0.95)), rel=1e-6)
+    assert rec.validation_share_above == pytest.approx(float(np.mean(u > np.quantile(u, 0.95))))
+    assert (rec.u_mean, rec.u_median, rec.u_max) == pytest.approx((u.mean(), np.median(u), u.max()), rel=1e-6)
+    # the training steps scored instead give another threshold: they are not mixed in
+    u_train = _u_of_steps(policy, [step for n in train for step in written[n]], cfg)
+    assert float(np.quantile(u_train, 0.95)) != pytest.approx(rec.threshold, rel=1e-3)
+    assert rec.uncertainty == cfg
     # the record calibration.json keeps, in its order
     record = rec.to_dict()
     assert list(record) == [
@@ -67,7 +102,7 @@ def test_calibration_uses_only_the_validation_episodes(tmp_path):
     assert record["episodes_checked"] == {"identical": 0, "by_recipe": 0, "unverified": len(val)}
     # the training episodes scored instead give the other steps: none of them is mixed in
     swapped = {"dataset": {"train_episodes": val, "val_episodes": train}}
-    assert calibrate(policy, swapped, folder, 0.5, cfg, progress=False).samples + rec.samples == len(ds.obs)
+    assert calibrate(policy, swapped, folder, 0.95, cfg, progress=False).samples + rec.samples == len(ds.obs)
 
 
 def test_calibration_refuses_unsafe_inputs(tmp_path):

@@ -267,7 +267,7 @@ def test_the_hand_back_rule_has_one_vocabulary():
     alike; the old alias ``calm_steps`` is gone (``return_after``)."""
     from dataclasses import fields
 
-    from policy.assisted import AssistConfig
+    from lab.assisted import AssistConfig
 
     assert {f.name for f in fields(ControllerConfig)} >= set(HAND_BACK_FIELDS)
     assert {f.name for f in fields(AssistConfig)} >= set(HAND_BACK_FIELDS)

@@ -62,10 +62,10 @@ def test_steps_scale_with_the_takeover_data():
 def _fit_signal(policy, threshold=4.0):
     from policy.signals import make_signal
 
-    signal = make_signal("spread-stall", policy, {"num_samples": 4, "spread_patience": 2})
+    signal = make_signal("choice-stall", policy, {"num_samples": 4, "choice_patience": 2})
     signal.calibration = {
         "threshold": 1.0,
-        "spread": {"threshold": threshold, "spread_scale": 1.0},
+        "choice": {"threshold": threshold, "stride": 0.01},
         "stall": {"threshold": 0.5, "stride": 0.01},
     }
     return signal
@@ -78,10 +78,10 @@ def test_fitting_on_own_episodes_needs_successes_and_leaves_the_threshold_withou
     policy = tiny_policy()
     signal = _fit_signal(policy)
     evidence = fit_threshold_on_own_episodes(
-        policy, signal, "spread-stall", ["lift-cube"], "familiar", 2, 60_000, progress=False
+        policy, signal, "choice-stall", ["lift-cube"], "familiar", 2, 60_000, progress=False
     )
     assert evidence["successes"] == 0 and evidence["factor"] is None and "fewer than" in evidence["why"]
-    assert signal.calibration["spread"]["threshold"] == 4.0
+    assert signal.calibration["choice"]["threshold"] == 4.0
 
 
 def test_fitting_on_own_episodes_raises_the_threshold_to_the_most_doubtful_successful_episode(monkeypatch):
@@ -95,7 +95,7 @@ def test_fitting_on_own_episodes_raises_the_threshold_to_the_most_doubtful_succe
     def rollouts(policy, task, seeds, n_envs, progress, signals):
         eps = [PolicyEpisode(task, s, True, 3, {}) for s in seeds]
         for ep, level in zip(eps, [*levels, 9.0], strict=False):
-            ep.signal_scores = [{"spread-stall": v} for v in (0.1, level, level, 0.1)]
+            ep.signal_scores = [{"choice-stall": v} for v in (0.1, level, level, 0.1)]
         eps[-1].success = False  # a failed episode's doubt is the operator's business: not fitted on
         return eps, {}
 
@@ -103,12 +103,12 @@ def test_fitting_on_own_episodes_raises_the_threshold_to_the_most_doubtful_succe
     signal = _fit_signal(tiny_policy())
     n = len(levels) + 1
     evidence = fit_threshold_on_own_episodes(
-        signal.policy, signal, "spread-stall", ["lift-cube"], "familiar", n, 60_000, progress=False
+        signal.policy, signal, "choice-stall", ["lift-cube"], "familiar", n, 60_000, progress=False
     )
     assert evidence["successes"] == len(levels) and evidence["asked"] == 2
     assert evidence["factor"] == pytest.approx(max(levels))
-    assert signal.calibration["spread"]["threshold"] == pytest.approx(4.0 * max(levels))
-    assert signal.calibration["spread"]["own_episodes"]["seed"] == 60_000
+    assert signal.calibration["choice"]["threshold"] == pytest.approx(4.0 * max(levels))
+    assert signal.calibration["choice"]["own_episodes"]["seed"] == 60_000
     assert signal.calibration["stall"]["threshold"] == 0.5  # the new-scene half is fitted on other tasks
 
 

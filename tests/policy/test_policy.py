@@ -9,7 +9,6 @@ from policy.config import DiffusionPolicyConfig
 from policy.diffusion import NoiseSchedule
 from policy.diffusion_policy import DiffusionPolicy
 from policy.train import TrainConfig, train_policy
-from sim.tasks.lift import LIFT_OBS
 from storage import keys
 from tests.helpers import state_equal
 
@@ -205,36 +204,6 @@ def test_schedule_golden_values():
     k = 60
     xk = s.add_noise(x0, eps, torch.full((4,), k))
     torch.testing.assert_close(s.ddim_step(xk, eps, k, -1), x0, rtol=1e-4, atol=1e-5)
-
-
-def test_rollout_scores_every_step_of_every_robot():
-    from policy.evaluate import rollout_policy, summarize
-    from policy.uncertainty import UncertaintyConfig
-
-    torch.manual_seed(0)
-    cfg = DiffusionPolicyConfig(
-        obs_dim=LIFT_OBS.dim,
-        network="mlp",
-        mlp_hidden=32,
-        obs_encoder_dims=(16,),
-        step_embed_dim=8,
-        num_inference_steps=3,
-    )
-    policy = DiffusionPolicy(cfg).eval()
-    rng = np.random.default_rng(0)
-    low = np.r_[[-0.1, -0.1, 0.9], [-1] * 6, [-1]]
-    high = np.r_[[0.1, 0.1, 1.0], [1] * 6, [1]]
-    policy.fit_normalizers(rng.normal(size=(64, LIFT_OBS.dim)), rng.uniform(low, high, size=(64, 10)))
-    unc = UncertaintyConfig(num_samples=16)
-    episodes, _ = rollout_policy(
-        policy, "lift-cube", [5, 6], n_envs=2, uncertainty=unc, keep_fields=True, progress=False
-    )
-    assert [e.seed for e in episodes] == [5, 6]
-    for e in episodes:
-        assert len(e.uncertainty) == e.steps == len(e.fields) == len(e.context) > 0
-        assert np.isfinite(e.uncertainty).all() and "max_lift" in e.info
-    s = summarize(episodes)
-    assert s["episodes"] == 2 and np.isfinite(s["uncertainty"]["p95"])
 
 
 def test_symmetry_augmentation_turns_each_sample_and_needs_a_symmetry():

@@ -282,3 +282,27 @@ def test_a_405_names_every_method_the_path_allows():
         assert r.status_code == 405 and r.headers["allow"] == allow, (method, path, r.headers.get("allow"))
         if method != "HEAD":  # a HEAD answer has no body
             assert r.json() == {"detail": "Method Not Allowed"}  # the one error schema
+
+
+def test_a_renamed_field_is_kept_for_one_release_marked_deprecated_with_the_new_ones_value(service):
+    """One name per concept: the asking signal's score and threshold are ``asking.score`` / ``score`` and
+    ``asking.threshold``, the paper's threshold ``paper_threshold``; the old duplicates stay, deprecated."""
+    schemas = service.openapi["components"]["schemas"]
+    deprecated = {
+        "RobotSummary": {"uncertainty", "threshold"},
+        "AssistanceRequestOut": {"uncertainty"},
+        "PolicyOut": {"threshold"},
+    }
+    for model, names in deprecated.items():
+        props = schemas[model]["properties"]
+        assert {n for n, p in props.items() if p.get("deprecated")} == names, model
+    [robot] = svc_get(service, "/api/v1/robots")
+    assert (robot["uncertainty"], robot["threshold"]) == (robot["asking"]["score"], robot["asking"]["threshold"])
+    [policy] = svc_get(service, "/api/v1/policies")
+    assert policy["threshold"] == policy["paper_threshold"] is not None
+
+
+def svc_get(svc, path):
+    r = svc.client.get(svc.url + path, headers=_h(svc, "viewer"))
+    r.raise_for_status()
+    return r.json()

@@ -83,7 +83,7 @@ def _log(svc) -> str:
 
 
 # -- a JSON-schema check for the keywords pydantic emits (an unknown keyword fails the test) -----------------
-_ANNOTATIONS = {"title", "description", "default", "examples", "format"}
+_ANNOTATIONS = {"title", "description", "default", "examples", "format", "deprecated"}
 _CHECKED = {"$ref", "anyOf", "oneOf", "allOf", "const", "enum", "type", "properties", "required"}
 _CHECKED |= {"additionalProperties", "items", "minItems", "maxItems", "minimum", "maximum"}
 _CHECKED |= {"exclusiveMinimum", "exclusiveMaximum"}

@@ -2,6 +2,7 @@
 
 import ast
 import inspect
+import textwrap
 from pathlib import Path
 
 from server.fleet.fleet import Fleet
@@ -41,3 +42,26 @@ def test_the_fleet_implements_the_port_with_its_signatures():
             assert isinstance(theirs, property) or f"self.{name} = " in inspect.getsource(Fleet), name
             continue
         assert list(inspect.signature(ours).parameters) == list(inspect.signature(theirs).parameters), name
+
+
+def test_each_route_that_calls_a_port_member_needs_the_role_the_port_names():
+    """One role rule: the REST route and the console (``web.actions``) both take it from ``server.port.NEEDS``."""
+    import importlib
+
+    from fastapi.routing import APIRoute
+
+    from server.port import NEEDS
+
+    checked = set()
+    for path in sorted((ROOT / "server" / "api").glob("*.py")):
+        router = getattr(importlib.import_module(f"server.api.{path.stem}"), "router", None)
+        for route in router.routes if router is not None else ():
+            if not isinstance(route, APIRoute):
+                continue
+            source = textwrap.dedent(inspect.getsource(route.endpoint))
+            calls = {name for _, name in _fleet_attributes(ast.parse(source))} & set(NEEDS)
+            roles = {getattr(d.call, "role", None) for d in route.dependant.dependencies} - {None}
+            for member in calls:
+                assert roles == {NEEDS[member]}, (route.path, member, roles)
+                checked.add(member)
+    assert {"claim", "release", "command", "heartbeat", "pause", "reset"} <= checked

@@ -9,7 +9,7 @@ from policy.hand_back import HAND_BACK_FIELDS
 from server.auth import Principal, authenticate, create_token, revoke_token
 from server.db import make_engine, migrate, session_factory
 from server.fleet.slots import controller_config
-from server.settings import RENAMED, Settings, bundled_policy
+from server.settings import REMOVED, Settings, bundled_policy
 
 
 def test_settings_come_from_the_file_with_environment_and_flags_on_top(tmp_path, monkeypatch):
@@ -69,51 +69,40 @@ def test_groups_may_share_one_policy_folder():
 
 def test_the_cli_reports_a_bad_config_without_a_traceback(tmp_path, capsys):
     config = tmp_path / "bad.toml"
-    config.write_text("budget_steps = 0")
-    with pytest.warns(FutureWarning, match="use 'budget'"):
-        assert main(["serve", "--config", str(config)]) == 2
-    err = capsys.readouterr().err
-    assert "budget_steps" in err
-    assert "'budget' was given as 'budget_steps', its deprecated name" in err  # the old name, by its new one
+    config.write_text("budget = 0")
+    assert main(["serve", "--config", str(config)]) == 2
+    assert "budget" in capsys.readouterr().err
+    config.write_text("budget_steps = 4")
+    assert main(["serve", "--config", str(config)]) == 2
+    assert f"setting 'budget_steps' in {config} was renamed: use 'budget'" in capsys.readouterr().err
     assert main(["serve", "--config", str(tmp_path / "missing.toml")]) == 2
     capsys.readouterr()
     assert main(["finetune", "--data-dir", str(tmp_path / "var"), "--takeover-tail", "-1", "--quiet"]) == 2
     assert "takeover tail must be an integer >= 1 or None, got -1" in capsys.readouterr().err
 
 
-def _messages(record) -> list[str]:
-    return [str(w.message) for w in record if issubclass(w.category, FutureWarning)]
-
-
-def test_the_old_hand_back_names_are_accepted_with_a_warning_naming_the_new_one(tmp_path, monkeypatch):
+def test_a_removed_hand_back_name_is_refused_naming_the_new_one(tmp_path, monkeypatch):
     config = tmp_path / "old.toml"
-    config.write_text('trigger_mode = "continuous"\nbudget_steps = 7\n')
-    monkeypatch.setenv("HITL_COOLDOWN_STEPS", "3")
-    with pytest.warns(FutureWarning) as record:
-        s = Settings.load(config, auto_return_steps=2)  # a file, a variable and a keyword
-    assert (s.hand_back, s.budget, s.return_after, s.cooldown) == ("continuous", 7, 2, 3)
-    warned = _messages(record)
-    for old, new in RENAMED.items():
-        shown = (f"HITL_{old.upper()}", f"HITL_{new.upper()}") if old == "cooldown_steps" else (old, new)
-        assert any(f"setting {shown[0]!r}" in m and f"use {shown[1]!r}" in m for m in warned), (old, warned)
-    assert "setting 'budget_steps' in " in next(m for m in warned if "'budget_steps'" in m)
-    assert "the old name is accepted until the next release" in warned[0]
-    assert controller_config(s) == ControllerConfig(hand_back="continuous", budget=7, return_after=2, cooldown=3)
-    monkeypatch.delenv("HITL_COOLDOWN_STEPS")
-    with pytest.warns(FutureWarning, match="setting 'budget_steps' is deprecated: use 'budget'"):
-        assert Settings(budget_steps=5).budget == 5
-    monkeypatch.setenv("HITL_TRIGGER_MODE", "continuous")  # a variable alone, as `hitl bench loop --set` gives it
-    variable = "'HITL_TRIGGER_MODE' in the environment is deprecated: use 'HITL_HAND_BACK'"
-    with pytest.warns(FutureWarning, match=variable):
-        assert Settings().hand_back == "continuous" and Settings.load(None).hand_back == "continuous"
-    monkeypatch.setenv("HITL_BUDGET", "6")  # a new name in a later source wins over an old one in an earlier
-    with pytest.warns(FutureWarning):
-        assert Settings.load(config, cooldown_steps=1).budget == 6
+    for old, new in REMOVED.items():
+        config.write_text(f"{old} = 1\n")
+        with pytest.raises(ValueError, match=f"setting '{old}' in .*old.toml was renamed: use '{new}'"):
+            Settings.load(config)
+        with pytest.raises(ValueError, match=f"setting '{old}' in the overrides was renamed: use '{new}'"):
+            Settings.load(None, **{old: 1})
+        with pytest.raises(ValueError, match=f"was renamed: use '{new}'"):
+            Settings(**{old: 1})
+        monkeypatch.setenv(f"HITL_{old.upper()}", "1")
+        with pytest.raises(
+            ValueError, match=f"'HITL_{old.upper()}' in the environment was renamed: use 'HITL_{new.upper()}'"
+        ):
+            Settings()
+        monkeypatch.delenv(f"HITL_{old.upper()}")
+    assert Settings().budget == 4  # nothing left behind
 
 
 def test_the_hand_back_settings_are_the_controllers_names():
-    assert set(RENAMED.values()) <= set(HAND_BACK_FIELDS)  # ``resume`` came later: it had no old name
-    assert set(HAND_BACK_FIELDS) <= set(Settings.model_fields) and not set(RENAMED) & set(Settings.model_fields)
+    assert set(REMOVED.values()) <= set(HAND_BACK_FIELDS)  # ``resume`` came later: it had no old name
+    assert set(HAND_BACK_FIELDS) <= set(Settings.model_fields) and not set(REMOVED) & set(Settings.model_fields)
     s = Settings(hand_back="continuous", budget=9, return_after=4, cooldown=0, resume="history")
     expected = ControllerConfig(hand_back="continuous", budget=9, return_after=4, cooldown=0, resume="history")
     assert controller_config(s) == expected
@@ -122,28 +111,18 @@ def test_the_hand_back_settings_are_the_controllers_names():
 
 
 @pytest.mark.parametrize("source", ["toml", "env", "keyword", "constructor"])
-def test_an_old_and_a_new_name_together_are_refused_naming_both(tmp_path, monkeypatch, source):
+def test_a_removed_name_beside_its_new_one_is_refused_too(tmp_path, monkeypatch, source):
     config = tmp_path / "both.toml"
     config.write_text("budget_steps = 4\nbudget = 4\n" if source == "toml" else "")
     if source == "env":
         monkeypatch.setenv("HITL_BUDGET_STEPS", "4")
         monkeypatch.setenv("HITL_BUDGET", "4")
     old, new = ("HITL_BUDGET_STEPS", "HITL_BUDGET") if source == "env" else ("budget_steps", "budget")
-    with pytest.raises(ValueError, match=f"settings {old!r} and {new!r} both given.*keep only {new!r}"):
+    with pytest.raises(ValueError, match=f"setting {old!r}.* was renamed: use {new!r}"):
         if source == "constructor":
             Settings(budget_steps=4, budget=4)
         else:
             Settings.load(config, **({"budget_steps": 4, "budget": 4} if source == "keyword" else {}))
-
-
-def test_the_cli_refuses_an_old_and_a_new_name_together(tmp_path, capsys):
-    config = tmp_path / "both.toml"
-    config.write_text('trigger_mode = "budgeted"\nhand_back = "budgeted"\n')
-    assert main(["serve", "--config", str(config)]) == 2
-    assert "settings 'trigger_mode' and 'hand_back' both given" in capsys.readouterr().err
-    config.write_text("budget = 0")
-    assert main(["serve", "--config", str(config)]) == 2
-    assert "budget" in capsys.readouterr().err
 
 
 def test_tokens_are_stored_hashed_and_can_be_revoked(tmp_path):

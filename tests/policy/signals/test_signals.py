@@ -22,7 +22,6 @@ CALIBRATION_SAMPLES = {
     "hula-offline": 12,
     "spread": 12,
     "stall": None,  # the validation steps whose gripper is open now and in the policy's sampled action
-    "spread-stall": 12,  # spread's samples: every validation step
     "choice": 12,
     "choice-stall": 12,  # choice's samples: every validation step
     "full-teleop": 0,
@@ -37,7 +36,6 @@ FAST = {  # keep every auxiliary training and calibration tiny
     "hula-offline": {"hidden": [16], "steps": 30},
     "spread": {"num_samples": 8, "noise_step": 10},
     "stall": {"calibration_batch": 5},
-    "spread-stall": {"num_samples": 8, "noise_step": 10},
     "choice": {"num_samples": 8},
     "choice-stall": {"num_samples": 8},
     "full-teleop": {},

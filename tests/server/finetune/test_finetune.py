@@ -115,14 +115,12 @@ def test_a_job_makes_a_recalibrated_evaluated_version_and_records_the_gate(store
     # a recalibrated threshold on the held-out episode, carried into the folder, its signals recalibrated
     cal = load_calibration(child.path)
     assert child.threshold == pytest.approx(cal["threshold"]) and cal["episodes"] == ["lift-cube_seed000004.mcap"]
-    assert child.calibration["episodes"] == cal["episodes"] and {"spread", "spread-stall", "choice-stall"} <= set(
-        cal["signals"]
-    )
-    for name in ("spread", "spread-stall", "choice-stall"):
+    assert child.calibration["episodes"] == cal["episodes"] and {"spread", "choice-stall"} <= set(cal["signals"])
+    for name in ("spread", "choice-stall"):
         assert (Path(child.path) / "signals" / name / "config.json").is_file()
     # the fleet's signal fitted on the candidate's own episodes: lift-cube its familiar scene, lift-nut a new
     # one; the tiny policy lifts nothing, so nothing is raised
-    assert {"spread-stall", "choice-stall"} <= set(cal["signals_fitted_on_own_episodes"])
+    assert {"choice-stall"} <= set(cal["signals_fitted_on_own_episodes"])
     fitted = cal["signals_fitted_on_own_episodes"]["choice-stall"]
     assert fitted["familiar"]["tasks"] == ["lift-cube"] and fitted["new"]["tasks"] == ["lift-nut"]
     assert fitted["new"]["seed"] == 60_000 and fitted["new"]["successes"] == 0 and fitted["new"]["factor"] is None

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from sqlalchemy import select
 
-from policy.assisted import AssistConfig, run_assisted
+from lab.assisted import AssistConfig, run_assisted
 from policy.evaluate import rollout_policy
 from server.db import EpisodeRecord, PolicyVersion, make_engine, migrate, session_factory
 from server.errors import ServiceError
@@ -64,7 +64,7 @@ def test_commands_between_ticks_are_applied_once_in_order_or_refused(tmp_path):
     fleet.tick()  # threshold -1: the robot asks at once and holds
     assert fleet.view(0).mode == "waiting" and fleet.queue.get(0) is not None
     fleet.claim(0, "op")
-    # the lease is the operator's at once; the loop puts the robot under their control at its next tick
+    # the lease is the operator's at once; the next tick (driven here by hand) puts the robot under their control
     assert fleet.view(0).mode == "waiting" and fleet.queue.get(0).holder == "op"
     assert workers[0].priority == Priority.BACKGROUND
     fleet.tick()  # no command yet: it holds
@@ -503,11 +503,11 @@ def test_a_waiting_robot_shows_the_request_the_queue_holds_and_its_takeover_reco
     assert view.mode == "waiting" and view.ask == req.ask
     out, queued = summary(view), request_out(req)
     assert (out.asking.score, out.asking.threshold, out.asking.reason) == (
-        queued.uncertainty,
+        queued.score,
         queued.threshold,
         queued.reason,
     )
-    assert (out.uncertainty, out.threshold) == (queued.score, queued.threshold) == (queued.uncertainty, 1.0)
+    assert (out.uncertainty, out.threshold) == (queued.score, queued.threshold) == (queued.score, 1.0)
     assert out.asking.signal == queued.signal == "choice-stall" and out.asking.wants_help is True
     assert out.asking.asked_at_step == view.frame.clock and queued.reason.startswith("choice-stall: ")
     # the paper's metric is a field of its own: its U and the denoising threshold (-1), not the asking signal's
@@ -520,7 +520,7 @@ def test_a_waiting_robot_shows_the_request_the_queue_holds_and_its_takeover_reco
     fleet.tick()  # the claim applies, one operator step
     teleop = summary(fleet.view(0))
     assert fleet.view(0).mode == "teleop" and teleop.asking.reason == queued.reason  # still the request's
-    assert teleop.uncertainty == queued.uncertainty  # the score it asked with, not the operator step's
+    assert teleop.uncertainty == queued.score  # the score it asked with, not the operator step's
     fleet.release(0, "op")
     assert fleet.view(0).mode == "teleop"  # the next tick hands it back
     fleet.tick()
@@ -529,7 +529,7 @@ def test_a_waiting_robot_shows_the_request_the_queue_holds_and_its_takeover_reco
         [row] = s.scalars(select(SegmentRecord)).all()
     assert (row.signal, row.score, row.threshold, row.reason, row.paper_u) == (
         "choice-stall",
-        req.uncertainty,
+        req.score,
         req.threshold,
         req.reason,
         req.paper_u,
@@ -537,7 +537,7 @@ def test_a_waiting_robot_shows_the_request_the_queue_holds_and_its_takeover_reco
     segment = read_segment(in_store(fleet.data_dir, row.path))
     assert segment.request == {
         "signal": "choice-stall",
-        "score": req.uncertainty,
+        "score": req.score,
         "threshold": 1.0,
         "reason": req.reason,
         "asked_at_step": req.asked_at_step,
@@ -562,12 +562,12 @@ def test_the_watchdogs_and_a_requested_help_show_as_the_queue_ranks_them(tmp_pat
     asking = summary(fleet.view(0)).asking
     assert (asking.signal, asking.score, asking.threshold, asking.reason, asking.wants_help) == (
         "watchdog",
-        req.uncertainty,
+        req.score,
         req.threshold,
         "watchdog: 5 of 10 steps without success",
         None,
     )
-    assert (req.uncertainty, req.threshold, asking.asked_at_step) == (1.0, 1.0, 5)
+    assert (req.score, req.threshold, asking.asked_at_step) == (1.0, 1.0, 5)
     fleet.claim(0, "op")
     fleet.command(0, "op", UP)
     fleet.tick()  # the budget of one step: handed back

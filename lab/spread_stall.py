@@ -1,6 +1,8 @@
-"""``spread-stall``: the fleet's asking signal. Where the scene is one the policy knows, it asks when
-the policy is unsure (``spread``); where the scene is new, it asks when the policy is stuck
-(``stall``, with ``reask_undo``).
+"""``spread-stall``: the fleet's previous asking signal, superseded by ``choice-stall``
+(``policy.signals.choice_stall``); kept in the lab, registered only for the benchmarks
+(``lab.signals``), for the committed results that compare with it. Where the scene is one the policy
+knows, it asks when the policy is unsure (``spread``); where the scene is new, it asks when the policy
+is stuck (``stall``, with ``reask_undo``).
 
 Why (docs/signals.md, "spread-stall"; docs/benchmarks/hitl.md):
 

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import torch
 
+from lab.spread_stall import SpreadStallConfig
 from policy.signals import SignalInput, TriggerState, load_signal, make_signal, save_signal
 from policy.signals.base import CalibrationData, SignalError, StepSet
-from policy.signals.spread_stall import SpreadStallConfig
 from sim.tasks.lift import LIFT_OBS
 from tests.helpers import tiny_policy
 
@@ -78,9 +78,10 @@ def test_a_new_scene_keeps_the_operators_progress(monkeypatch):
     plan_back = torch.as_tensor(_action([0.015, 0, 1]))[None, None]
     back = SignalInput(torch.zeros(1, 1, OBS_DIM), current, np.asarray([0]), action=plan_back)
     scores = signal.score(back)
-    assert signal.wants_help(scores, TriggerState([0]))[0]
+    after = TriggerState([0], after_takeover=np.asarray([True]))  # the control state: driven since
+    assert signal.wants_help(scores, after)[0]
     assert signal.explain(scores, 0) == "new scene, the policy would undo the operator's work"
-    assert signal.urgent(TriggerState([0]))[0]  # a cooldown does not hold it back
+    assert signal.urgent(after)[0]  # a cooldown does not hold it back
 
 
 def test_on_a_familiar_scene_no_request_is_urgent(monkeypatch):
@@ -199,3 +200,21 @@ def test_an_episodes_level_is_what_patience_consecutive_steps_all_reach(monkeypa
             signal.scale_threshold("familiar", bad, {})
     with pytest.raises(SignalError, match="scene must be one of"):
         signal.episode_level(np.zeros(3), "kitchen")
+
+
+def test_the_lab_registers_spread_stall_only_inside_its_block(monkeypatch):
+    """Superseded by choice-stall: the benchmarks name it while ``lab.signals.registered`` holds (``hitl``'s
+    benchmark and experiment commands), the product's registry has it not."""
+    from lab.signals import registered
+    from lab.spread_stall import SpreadStallSignal
+    from policy.signals.registry import SIGNALS
+
+    monkeypatch.delitem(SIGNALS, "spread-stall")  # this module's fixture registered it
+    with pytest.raises(KeyError, match="unknown signal 'spread-stall'"):
+        make_signal("spread-stall", tiny_policy())
+    with registered():
+        assert SIGNALS["spread-stall"] is SpreadStallSignal
+        with registered():
+            pass
+        assert "spread-stall" in SIGNALS  # an inner block leaves the outer one's
+    assert "spread-stall" not in SIGNALS

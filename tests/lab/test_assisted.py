@@ -1,6 +1,6 @@
 import numpy as np
 
-from policy.assisted import AssistConfig, run_assisted, summarize_assisted
+from lab.assisted import AssistConfig, run_assisted, summarize_assisted
 from policy.signals import make_signal
 from policy.signals.base import Scores, TriggerState
 from sim.registry import make_expert
@@ -121,7 +121,7 @@ def test_a_takeover_just_above_the_grasp_goes_across_and_down_without_climbing(t
 
 
 def test_an_operator_who_hands_back_when_held_gives_the_robot_back_holding_the_object(task_cache):
-    from policy.assisted import ExpertOperator
+    from lab.assisted import ExpertOperator
     from sim.frame import RobotFrame
 
     task = task_cache("lift-cube")
