@@ -114,6 +114,12 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
     for inference in args.inference:  # the settings' own validation (inference = "ray" needs Ray installed)
         Settings(device=args.device, robots_per_process=args.robots_per_process, inference=inference)
     check_device(args.device)  # before any process starts
+    before = None
+    if args.compare:  # read before the run: a missing or unreadable file fails at once
+        path = Path(args.compare)
+        if not path.is_file():
+            raise ValueError(f"--compare: no result file {args.compare!r}")
+        before = json.loads(path.read_text())
     result = bench_fleet(
         args.task,
         sizes,
@@ -126,10 +132,10 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
         device=args.device,
         inference=tuple(dict.fromkeys(args.inference)),
     )
-    if args.compare:
+    if before is not None:
         from bench.fleet import compare_with
 
-        result["compare"] = compare_with(result, json.loads(Path(args.compare).read_text()))
+        result["compare"] = compare_with(result, before)
     text = json.dumps(stamped(result), indent=None if args.json else 2)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

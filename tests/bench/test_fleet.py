@@ -55,3 +55,33 @@ def test_a_fleet_with_its_inference_on_ray_reports_the_actors_call_and_compute_t
 
 def test_the_default_back_ends_are_those_installed_here():
     assert available_workers() == ("process", "pool", "ray")  # the test extra installs Ray
+
+
+def test_compare_puts_each_figure_beside_the_previous_releases_row():
+    """Rows meet by size and back end (an earlier file names it ``worker``); a figure only one side holds
+    is left out, and the previous file's provenance is kept."""
+    from bench.fleet import compare_with
+
+    now = {
+        "sizes": [
+            {
+                "robots": 16,
+                "backend": "pool",
+                "env_steps_per_s": 140.0,
+                "loop_cpu_ms_per_env_step": 6.5,
+                "loop_own_cpu_ms_per_env_step": 0.6,
+                "signals_cpu_ms_per_env_step": {"denoising": 1.8},
+            },
+            {"robots": 8, "backend": "pool", "env_steps_per_s": 150.0},
+        ]
+    }
+    before = {
+        "provenance": {"commit": "c" * 40},
+        "sizes": [{"robots": 16, "worker": "pool", "env_steps_per_s": 223.0, "loop_cpu_ms_per_env_step": 3.9}],
+    }
+    out = compare_with(now, before)
+    assert out["before"] == {"commit": "c" * 40}
+    [row] = out["rows"]
+    assert row["robots"] == 16 and row["env_steps_per_s"] == {"before": 223.0, "now": 140.0}
+    assert row["loop_cpu_ms_per_env_step"] == {"before": 3.9, "now": 6.5}
+    assert "loop_own_cpu_ms_per_env_step" not in row and row["signals"] == {}
