@@ -265,7 +265,7 @@ operators-docs: install
 # without return_after (a takeover lasts until its episode ends) and after 1 agreeing step (about 11 min)
 operators-hand-back-docs: install
 	rm -rf var/bench-operators-return-*
-	for r in none 1; do $(BIN)/hitl bench operators --sizes 10 --control-hz 5 --ticks 1500 --set return_after=$$r \
+	for r in none 1; do $(BIN)/hitl bench operators --sizes 10 --control-hz 5 --ticks 1500 --set controller.return_after=$$r \
 		--data-dir var/bench-operators-return-$$r --out docs/results/service/operators-return-$$r.json --quiet \
 		> /dev/null || exit 1; done
 
@@ -322,7 +322,7 @@ loop-docs: install
 # docs/benchmarks/service.md, "The loop", why 4-step help does not bring the hammer through in the demo fleet: the
 # budgeted run again with no cooldown after a hand-back (about 5 min)
 loop-cooldown-docs: install
-	$(BIN)/hitl bench loop --seconds 240 --mode budgeted --set cooldown=0 --quiet \
+	$(BIN)/hitl bench loop --seconds 240 --mode budgeted --set controller.cooldown=0 --quiet \
 		> docs/results/service/loop-budgeted-cooldown-0.json
 
 # docs/benchmarks/service.md, "API load": the real service, 16 robots, 50 REST/WebSocket clients (about 1 min).

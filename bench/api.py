@@ -350,9 +350,11 @@ def bench_api(
             data_dir=Path(tmp) / "var",
             control_hz=control_hz,
             robots=[RobotGroup(task=task, count=robots, policy=policy)],
-            worker=worker,
-            assistance=False,  # no robot asks by itself: the mix of modes is the benchmark's
-            hand_back="continuous",  # an operator keeps a robot until release
+            workers={"kind": worker},
+            controller={
+                "assistance": False,
+                "hand_back": "continuous",
+            },  # no robot asks by itself; an operator keeps a robot until release
         )
         sessions, engine = fresh_database(settings)
         n_operators = plan["websocket_streams"] + plan["queue_cyclers"]

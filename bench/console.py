@@ -245,9 +245,8 @@ def bench_console(
             data_dir=Path(tmp) / "var",
             control_hz=control_hz,
             robots=[RobotGroup(task=task, count=robots)],
-            assistance=False,
-            shadow_signals=["denoising"],
-            cameras=cameras,
+            controller={"assistance": False, "shadow_signals": ["denoising"]},
+            cameras={"enabled": cameras},
         )
         sessions, engine = fresh_database(settings)
         token = create_token(sessions, "bench-console", "viewer")
@@ -284,8 +283,8 @@ def bench_console(
                         "available": camera.available,
                         "reason": camera.reason,
                         "views_per_s": (fleet.cameras.rendered - rendered0) / loaded["seconds"],
-                        "hz_per_watched_robot": settings.camera_hz,
-                        "size": [settings.camera_width, settings.camera_height],
+                        "hz_per_watched_robot": settings.cameras.hz,
+                        "size": [settings.cameras.width, settings.cameras.height],
                         "renderer_cores": loaded["cpu_cores"].get("camera_renderer"),
                     }
                     received = browser_process.result(timeout=seconds + 120)

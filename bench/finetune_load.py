@@ -41,7 +41,7 @@ def bench_finetune_load(
             data_dir=Path(tmp) / "var",
             control_hz=control_hz,
             robots=[RobotGroup(task=task, count=robots)],
-            assistance=False,
+            controller={"assistance": False},
             console=False,
             finetune=FinetuneSettings(schedule=None, niceness=niceness, idle_priority=idle_priority, promote=False),
         )

@@ -105,14 +105,12 @@ def fleet_throughput(
         data_dir=data_dir,
         control_hz=0,
         robots=[RobotGroup(task=task, count=n)],
-        lease_seconds=3600,
-        torch_threads=torch_threads,
-        worker=worker,
-        robots_per_process=robots_per_process,
-        device=device,
-        inference=inference,
-        assistance=False,  # every other robot stays under the policy: the full per-step cost, all the time
-        hand_back="continuous",  # with assistance off, the operator keeps robot 0 until its episode ends
+        queue={"lease_seconds": 3600},
+        inference={"torch_threads": torch_threads, "device": device, "backend": inference},
+        workers={"kind": worker, "robots_per_process": robots_per_process},
+        # every other robot stays under the policy: the full per-step cost, all the time; with assistance
+        # off, the operator keeps robot 0 until its episode ends
+        controller={"assistance": False, "hand_back": "continuous"},
     )
     migrate(settings.db_url)
     rss_before = memory_mb()["rss_mb"]

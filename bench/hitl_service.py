@@ -41,9 +41,10 @@ def fleet_seeds(seed: int, robots: int) -> list[int]:
 
 def _config(path: Path, task: str, policy: Path, robots: int, signal: str, budget: int, data_dir: Path) -> None:
     path.write_text(
-        f'data_dir = "{data_dir}"\nworker = "in-process"\ncontrol_hz = 50\ntrace_policies = false\n'
-        f'signal = "{signal}"\nhand_back = "budgeted"\nbudget = {budget}\ncooldown = 0\n'
-        "freeze_idle = true\nbatch_invariant = true\nseed = 0\nlease_seconds = 60\n"
+        f'data_dir = "{data_dir}"\ncontrol_hz = 50\nseed = 0\n'
+        '[workers]\nkind = "in-process"\nfreeze_idle = true\n[inference]\ntrace_policies = false\n'
+        f'[controller]\nsignal = "{signal}"\nhand_back = "budgeted"\nbudget = {budget}\ncooldown = 0\n'
+        "batch_invariant = true\n[queue]\nlease_seconds = 60\n"
         f'[[robots]]\ntask = "{task}"\ncount = {robots}\npolicy = "{Path(policy).resolve()}"\n'
     )
 

@@ -97,8 +97,8 @@ def run_loop(
     bot helping (``bot``), then stops the service with SIGTERM and reports what its database holds."""
     config = Path(config) if config is not None else DEMO_CONFIG
     data_dir = Path(tempfile.mkdtemp(prefix="hitl-loop-")) if data_dir is None else Path(data_dir)
-    overrides = {"HITL_DATA_DIR": str(data_dir), "HITL_HAND_BACK": mode, **(env or {})}
-    settings = Settings.load(config, data_dir=data_dir, hand_back=mode)
+    overrides = {"HITL_DATA_DIR": str(data_dir), "HITL_CONTROLLER__HAND_BACK": mode, **(env or {})}
+    settings = Settings.load(config, data_dir=data_dir, controller={"hand_back": mode})
     since = datetime.now(UTC)  # only this run's episodes and takeovers are reported (the folder may be reused)
     proc, url, sessions, token = launch_service(config, settings, overrides)
     operator = OperatorBot(url, token) if bot else None

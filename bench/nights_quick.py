@@ -62,9 +62,12 @@ def quick_config(root: Path, policy: Path, **finetune) -> Path:
         **finetune,
     }
     lines = [
-        'worker = "in-process"',
         "control_hz = 20",
+        "[workers]",
+        'kind = "in-process"',
+        "[inference]",
         "trace_policies = false",
+        "[controller]",
         'hand_back = "budgeted"',
         "budget = 4",
         "cooldown = 0",

@@ -266,7 +266,7 @@ def run_size(plan: OperatorsPlan, size: int, data_dir: Path, progress: bool = Tr
     env = dict(plan.overrides) | {
         "HITL_DATA_DIR": str(data_dir),
         "HITL_ROBOTS": json.dumps(robots),
-        "HITL_QUEUE_ORDER": plan.order,
+        "HITL_QUEUE__ORDER": plan.order,
     }
     if plan.control_hz is not None:
         env["HITL_CONTROL_HZ"] = str(plan.control_hz)

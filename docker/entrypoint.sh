@@ -1,6 +1,6 @@
 #!/bin/sh
 # Runs the container's command; with JOIN_RAY_CLUSTER=host:port it first joins that Ray cluster as a node that
-# offers no CPUs to actors, so the service's Ray calls go through a local raylet (settings: ray_address = "auto")
+# offers no CPUs to actors, so the service's Ray calls go through a local raylet (settings: ray.address = "auto")
 # and the robot actors land on the worker nodes.
 set -e
 if [ -n "$JOIN_RAY_CLUSTER" ]; then

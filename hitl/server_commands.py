@@ -112,7 +112,10 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
     if not (0 < args.command_hz <= 1000):
         raise ValueError(f"--command-hz must be in (0, 1000], got {args.command_hz!r}")
     for inference in args.inference:  # the settings' own validation (inference = "ray" needs Ray installed)
-        Settings(device=args.device, robots_per_process=args.robots_per_process, inference=inference)
+        Settings(
+            inference={"device": args.device, "backend": inference},
+            workers={"robots_per_process": args.robots_per_process},
+        )
     check_device(args.device)  # before any process starts
     before = None
     if args.compare:  # read before the run: a missing or unreadable file fails at once
@@ -247,13 +250,16 @@ def _cmd_bench_operators(args: argparse.Namespace) -> int:
 
 
 def _settings_env(items: list[str] | None) -> dict[str, str]:
-    """``--set KEY=VALUE`` items as ``HITL_KEY`` variables for the service."""
+    """``--set KEY=VALUE`` items (``controller.budget=8``) as ``HITL_*`` variables for the service."""
+    from server.settings import env_name, refuse_removed
+
     env = {}
     for item in items or []:
         key, sep, value = item.partition("=")
-        if not sep or not key.isidentifier():
-            raise ValueError(f"--set takes KEY=VALUE with a settings key, got {item!r}")
-        env["HITL_" + key.upper()] = value
+        if not sep or not all(part.isidentifier() for part in key.split(".")):
+            raise ValueError(f"--set takes KEY=VALUE with a settings key (section.key), got {item!r}")
+        refuse_removed({key: value}, " in --set")
+        env[env_name(key)] = value
     return env
 
 
@@ -424,7 +430,10 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q.add_argument("--config", type=Path, default=None, help="service config (default: configs/demo.toml)")
     q.add_argument("--data-dir", type=Path, default=None, help="where the run's database goes (default: a temp dir)")
     q.add_argument(
-        "--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown=20 (none unsets an optional one)"
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="a setting, e.g. controller.cooldown=20 (none unsets an optional one)",
     )
     q.add_argument("--no-bot", action="store_true", help="no operator: what the fleet does on its own")
     q.add_argument("--json", action="store_true")
@@ -450,7 +459,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         "--set",
         action="append",
         metavar="KEY=VALUE",
-        help="a setting, e.g. signal=denoising (none unsets an optional one)",
+        help="a setting, e.g. controller.signal=denoising (none unsets an optional one)",
     )
     q.add_argument("--data-dir", type=Path, default=None, help="where each size's service folder goes (default: temp)")
     q.add_argument("--out", type=Path, default=None, help="also write the JSON report here")
@@ -476,7 +485,10 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     )
     q.add_argument("--data-dir", type=Path, default=None, help="the run's service folder (default: a temp dir)")
     q.add_argument(
-        "--set", action="append", metavar="KEY=VALUE", help="a setting, e.g. cooldown=20 (none unsets an optional one)"
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="a setting, e.g. controller.cooldown=20 (none unsets an optional one)",
     )
     q.add_argument("--quick", action="store_true", help="a tiny fleet and job, for CI (2 days, minutes)")
     q.add_argument("--out", type=Path, default=None, help="also write the JSON report here")

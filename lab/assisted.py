@@ -31,7 +31,6 @@ import torch
 
 from policy.controller import Controller, ControllerConfig, RobotStep
 from policy.diffusion_policy import DiffusionPolicy
-from policy.hand_back import HAND_BACK, RESUME
 from policy.lockstep import ResetHook, run_lockstep
 from policy.signals.base import AssistanceSignal
 from sim.env import Task
@@ -50,7 +49,7 @@ HANDS_BACK_AT = ("held", "placed")
 
 @dataclass(frozen=True)
 class AssistConfig:
-    hand_back: str = "budgeted"  # the controller's names (``policy.hand_back.HAND_BACK_FIELDS``)
+    hand_back: str = "budgeted"  # the controller's names (``policy.hand_back.ControllerConfig``)
     budget: int = 4  # operator steps per assistance event (budgeted mode)
     cooldown: int = 0  # policy steps after a hand-back on which the robot does not ask again
     resume: str = "restart"  # what the policy sees first after a hand-back (``policy.hand_back.RESUME``)
@@ -67,22 +66,28 @@ class AssistConfig:
     # how the simulated operator plans at a takeover after the policy moved the robot (``sim.experts.OperatorStyle``)
     operator: str = OperatorStyle.CARRY_ON
 
+    def controller_config(self) -> ControllerConfig:
+        """The controller's settings of these rollouts (ValidationError naming a bad one)."""
+        return ControllerConfig(
+            hand_back=self.hand_back,
+            budget=self.budget,
+            return_after=self.return_after if self.hand_back == "continuous" else None,
+            cooldown=self.cooldown,
+            resume=self.resume,
+            watchdog=self.watchdog,
+            batch_invariant=self.batch_invariant,
+        )
+
     def __post_init__(self) -> None:
         if self.operator not in tuple(OperatorStyle):
             raise ValueError(f"operator must be one of {[str(s) for s in OperatorStyle]}, got {self.operator!r}")
         if self.operator_hands_back_at not in HANDS_BACK_AT:
             at = self.operator_hands_back_at
             raise ValueError(f"operator_hands_back_at must be one of {HANDS_BACK_AT}, got {at!r}")
-        if self.hand_back not in HAND_BACK:
-            raise ValueError(f"hand_back must be one of {HAND_BACK}, got {self.hand_back!r}")
-        if self.resume not in RESUME:
-            raise ValueError(f"resume must be one of {RESUME}, got {self.resume!r}")
-        if not (isinstance(self.cooldown, int) and self.cooldown >= 0):
-            raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
-        for name in ("budget", "n_envs", "return_after"):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and v >= 1) and not (name == "return_after" and v is None):
-                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if not (isinstance(self.n_envs, int) and self.n_envs >= 1):
+            raise ValueError(f"n_envs must be an integer >= 1, got {self.n_envs!r}")
+        self.controller_config()  # the controller's settings, checked where they are declared
+        ControllerConfig(return_after=self.return_after)  # also where budgeted rollouts leave it unused
         if self.return_after is None and self.hand_back == "continuous" and not self.operator_hands_back:
             raise ValueError("continuous mode with return_after None needs operator_hands_back: nothing hands back")
 
@@ -195,16 +200,8 @@ def run_assisted(
         signals,
         driver_name,
         make_task(task_name).action_space,
-        ControllerConfig(
-            hand_back=cfg.hand_back,
-            budget=cfg.budget,
-            return_after=cfg.return_after if cfg.hand_back == "continuous" else None,
-            cooldown=cfg.cooldown,
-            resume=cfg.resume,
-            watchdog=cfg.watchdog,
-            seed=cfg.seed,
-            batch_invariant=cfg.batch_invariant,
-        ),
+        cfg.controller_config(),
+        seed=cfg.seed,
     )
     episodes = [
         AssistedEpisode(

@@ -1,7 +1,7 @@
 """The one control step: every loop that moves robots calls ``Controller.step``.
 
 The fleet (``server.fleet``), autonomous evaluation (``policy.evaluate``: ``hitl rollout``,
-``hitl report sanity``) and assisted rollouts (``policy.assisted``: ``hitl assist`` and the
+``hitl report sanity``) and assisted rollouts (``lab.assisted``: ``hitl assist`` and the
 benchmarks) are thin drivers around it, so what we evaluate and benchmark is what we serve.
 
 Per robot, keyed by robot id, the controller owns:
@@ -47,13 +47,12 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 import torch
 
 from policy.diffusion_policy import DiffusionPolicy
-from policy.hand_back import HAND_BACK, RESUME
+from policy.hand_back import ControllerConfig
 from policy.hitl_state import Mode, RobotControl
 from policy.inference import Inference, InferenceRequest, InferenceUnavailable, LocalInference
 from policy.signals.base import AGREES, AssistanceSignal, SignalError
@@ -63,47 +62,6 @@ from sim.spaces import ACTION_DIM, ActionSpace, TeleopCommand, TeleopTarget
 from storage import keys
 
 WATCHDOG = "watchdog"  # RobotStep.asked_by when the robot asked because its episode ran long
-
-
-@dataclass(frozen=True)
-class ControllerConfig:
-    """hand_back: ``budgeted`` (``budget`` operator steps per assistance event) or ``continuous`` (until
-    the operator hands back); resume: after a hand-back the observation history restarts from the next
-    frame (``restart``) or keeps the takeover's frames (``history``, ``policy.hand_back.RESUME``);
-    return_after: also hand back after this many consecutive operator steps on which the asking signal
-    no longer wants help (None: never automatically); cooldown: after a hand-back, this many of the
-    policy's steps on which the robot does not ask again (0: it may ask at once; urgent requests
-    excepted), so that a score that keeps re-triggering cannot flood the queue; watchdog: a robot that
-    has used this fraction of its episode's horizon without success asks for help once, whatever its
-    signal says (None: only the signal asks); assistance: False scores every signal but never asks
-    (shadow runs); seed: the sampling noise's seed; batch_invariant: run the networks robot by robot,
-    so that a robot's numbers do not depend, even in the last float bit, on which robots share its
-    step (slower; for comparing runs whose batches differ, such as the service and in-process runs)."""
-
-    hand_back: Literal["budgeted", "continuous"] = "budgeted"
-    budget: int = 4
-    return_after: int | None = None
-    cooldown: int = 0
-    resume: Literal["restart", "history"] = "restart"
-    watchdog: float | None = None
-    assistance: bool = True
-    seed: int = 0
-    batch_invariant: bool = False
-
-    def __post_init__(self) -> None:
-        if self.hand_back not in HAND_BACK:
-            raise ValueError(f"hand_back must be one of {HAND_BACK}, got {self.hand_back!r}")
-        if not (isinstance(self.budget, int) and not isinstance(self.budget, bool) and self.budget >= 1):
-            raise ValueError(f"budget must be an integer >= 1, got {self.budget!r}")
-        if self.return_after is not None and not (isinstance(self.return_after, int) and self.return_after >= 1):
-            raise ValueError(f"return_after must be None or an integer >= 1, got {self.return_after!r}")
-        if not (isinstance(self.cooldown, int) and not isinstance(self.cooldown, bool) and self.cooldown >= 0):
-            raise ValueError(f"cooldown must be an integer >= 0, got {self.cooldown!r}")
-        if self.resume not in RESUME:
-            raise ValueError(f"resume must be one of {RESUME}, got {self.resume!r}")
-        if self.watchdog is not None and not (isinstance(self.watchdog, int | float) and 0 < self.watchdog < 1):
-            # at the whole horizon the episode is over before the robot could ask
-            raise ValueError(f"watchdog must be None or a fraction of the horizon in (0, 1), got {self.watchdog!r}")
 
 
 @dataclass
@@ -175,6 +133,7 @@ class Controller:
         action_space: ActionSpace,
         config: ControllerConfig | None = None,
         inference: Inference | None = None,
+        seed: int = 0,
     ) -> None:
         if asking is not None:
             if asking not in signals:
@@ -185,6 +144,7 @@ class Controller:
         self.asking = asking
         self.action_space = action_space
         self.config = config or ControllerConfig()
+        self.seed = seed  # with each episode's seed, the seed of its sampling noise
         self.inference = inference if inference is not None else LocalInference(policy, self.signals)
         # CPU seconds the inference back end spent so far, per part ("policy", each signal): what a tick's
         # network calls cost apart from the rest of the loop (``hitl bench fleet`` reports it)
@@ -196,7 +156,7 @@ class Controller:
         """A new episode: empty history and queue, autonomous, the signals forget the robot, and its
         sampling noise restarts from (controller seed, ``seed``). control: the robot's control state
         (the fleet keeps one per robot across episodes and policy versions; default: a new one)."""
-        state = np.random.SeedSequence([self.config.seed, int(seed)]).generate_state(2, np.uint32)
+        state = np.random.SeedSequence([self.seed, int(seed)]).generate_state(2, np.uint32)
         g = torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
         control = control if control is not None else RobotControl()
         control.new_episode()

@@ -224,10 +224,9 @@ class DiffusionPolicy(nn.Module):
 
         On CPU the trace also gets TorchScript's inference passes (``optimize_for_inference``: here
         each linear layer becomes a matmul with a pre-transposed constant weight plus a bias add),
-        which cut the fixed cost of a call, what counts at the fleet's small batches: one network
-        call for one robot 0.348 -> 0.238 ms, for 8 robots 0.512 -> 0.437 ms (docs/benchmarks/serving.md).
-        Outputs agree with the eager module to about 2e-6, the size of the differences the eager
-        module already shows between batch sizes."""
+        which cut the fixed cost of a call, what counts at the fleet's small batches
+        (docs/benchmarks/serving.md). Outputs agree with the eager module to within the differences
+        the eager module already shows between batch sizes."""
         if self.training:
             raise RuntimeError("freeze_for_inference needs eval mode (call .eval() first)")
         cfg = self.config

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from policy.calibrate import FLAG_SHARE
-from policy.controller import Controller, ControllerConfig, RobotStep
+from policy.controller import Controller, RobotStep
 from policy.diffusion_policy import DiffusionPolicy
 from policy.lockstep import StepHook, run_lockstep
 from policy.signals.base import AssistanceSignal
@@ -76,7 +76,7 @@ def rollout_policy(
     signals = dict(shadow)
     if uncertainty is not None:
         signals["denoising"] = DenoisingSignal(policy, DenoisingConfig.from_uncertainty(uncertainty))
-    controller = Controller(policy, signals, None, make_task(task_name).action_space, ControllerConfig(seed=seed))
+    controller = Controller(policy, signals, None, make_task(task_name).action_space, seed=seed)
     episodes = [PolicyEpisode(task_name, s, False, 0, {}) for s in seeds]
 
     def record(rid: int, task: Task, step: RobotStep) -> None:

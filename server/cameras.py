@@ -17,7 +17,7 @@ or stops answering mid-run, ``view`` says so (``CameraView.reason``, with the en
 wrote to stderr) and the feed stays off: the console shows the reason and works without cameras. A robot
 whose own views fail (its state does not fit its task's model) says why, and the others go on.
 
-**OpenGL.** The renderer's backend is chosen here, not inherited: ``gl`` (``Settings.camera_gl``,
+**OpenGL.** The renderer's backend is chosen here, not inherited: ``gl`` (``Settings.cameras.gl``,
 ``osmesa`` by default) is set as both ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` in its environment (the
 fleet's own process sets ``MUJOCO_GL`` for robosuite, which would otherwise leak into it).
 
@@ -96,7 +96,7 @@ class CameraFeed:
         env: dict[str, str] | None = None,
     ) -> None:
         """frame_of: where each robot's task and last frame come from; on_images: called with each rendered
-        view (the fleet records it); enabled: False turns the feed off (``Settings.cameras``); gl: the
+        view (the fleet records it); enabled: False turns the feed off (``Settings.cameras.enabled``); gl: the
         renderer's OpenGL backend; env: on top of the renderer's environment (tests)."""
         self.frame_of, self.on_images = frame_of, on_images
         self.hz, self.size, self.quality, self.gl, self.env = hz, size, quality, gl, env or {}
@@ -105,7 +105,7 @@ class CameraFeed:
         self._latest: dict[int, CameraImages] = {}
         self._frames: dict[int, RobotFrame] = {}  # the frame each robot's latest views show (a new one is rendered)
         self._errors: dict[int, str] = {}  # robot -> why its last frame could not be rendered
-        self._reason: str | None = None if enabled else "camera views are off (settings: cameras = false)"
+        self._reason: str | None = None if enabled else "camera views are off (settings: cameras.enabled = false)"
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.process: subprocess.Popen | None = None  # the renderer, while it runs (the feed's thread owns it)

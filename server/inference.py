@@ -67,17 +67,18 @@ class RayInference(Inference):
     """One ``InferenceHost`` actor for a policy version; resets are sent with the next call."""
 
     def __init__(self, settings: Settings, path: Path, signal_names: list[str]) -> None:
-        self.ray = connect(settings)
-        gpus = settings.inference_gpus
+        self.ray = connect(settings.ray)
+        gpus = settings.inference.gpus
         actor = self.ray.remote(InferenceHost).options(
-            num_cpus=settings.inference_cpus,
+            num_cpus=settings.inference.cpus,
             num_gpus=gpus,
             max_restarts=-1,
             max_task_retries=0,
-            namespace=settings.ray_namespace,
+            namespace=settings.ray.namespace,
         )
-        device = "cuda" if gpus > 0 else settings.device
-        self.handle = actor.remote(str(Path(path).resolve()), list(signal_names), device, settings.trace_policies)
+        device = "cuda" if gpus > 0 else settings.inference.device
+        trace = settings.inference.trace_policies
+        self.handle = actor.remote(str(Path(path).resolve()), list(signal_names), device, trace)
         self._resets: list[int] = []
         self.failures = 0  # calls that found the actor unavailable
         self.overhead_s = 0.0  # time in Ray's API and waiting for answers, all calls
@@ -106,6 +107,6 @@ class RayInference(Inference):
 
 def make_inference(settings: Settings, path: Path, policy, signals: dict) -> Inference:
     """The back end the settings name for a slot of ``policy`` (loaded from ``path``) and ``signals``."""
-    if settings.inference == "ray":
+    if settings.inference.backend == "ray":
         return RayInference(settings, path, list(signals))
     return LocalInference(policy, signals)

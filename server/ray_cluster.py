@@ -1,9 +1,9 @@
-"""The service's one connection to Ray, for the back ends that run on it (``worker = "ray"``).
+"""The service's one connection to Ray, for the back ends that run on it (``workers.kind``, ``inference.backend``).
 
 Ray is an optional extra (``pip install '.[ray]'``), imported only here and by the back ends that use
 it, so a fleet on the embedded defaults never needs it. ``connect`` starts a local instance with the
-machine's CPUs and no dashboard, or joins the cluster at ``ray_address`` (``ray://`` or ``host:port``),
-once per process: the robot actors and the service share it. The settings' ``ray_namespace`` keeps
+machine's CPUs and no dashboard, or joins the cluster at ``ray.address`` (``ray://`` or ``host:port``),
+once per process: the robot actors and the service share it. The settings' ``ray.namespace`` keeps
 one service's actors apart from another's on a shared cluster. ``connect`` reads only those two
 settings (``RayTarget``), so this module never imports ``server.settings``, which imports it.
 """
@@ -21,13 +21,13 @@ _lock = threading.Lock()
 
 
 class RayTarget(Protocol):
-    """What ``connect`` reads of the service's settings (``server.settings.Settings`` has both)."""
+    """What ``connect`` reads of the service's settings (``server.settings.RaySettings`` has both)."""
 
     @property
-    def ray_address(self) -> str | None: ...
+    def address(self) -> str | None: ...
 
     @property
-    def ray_namespace(self) -> str: ...
+    def namespace(self) -> str: ...
 
 
 class RayUnavailable(RuntimeError):
@@ -50,27 +50,27 @@ def ray_module():
 
 def connect(settings: RayTarget):
     """The ``ray`` module, initialized for this service (a local instance, or the cluster at
-    ``settings.ray_address``); already initialized: as it is."""
+    ``settings.address``); already initialized: as it is."""
     ray = ray_module()
     with _lock:
         if ray.is_initialized():
             return ray
         kwargs = {
-            "namespace": settings.ray_namespace,
+            "namespace": settings.namespace,
             "include_dashboard": False,
             "logging_level": logging.WARNING,
             "log_to_driver": False,
             # the actors import the project from the installed package, as the service does
             "runtime_env": {"env_vars": {"OMP_NUM_THREADS": "1"}},
         }
-        if settings.ray_address:
-            kwargs["address"] = settings.ray_address
+        if settings.address:
+            kwargs["address"] = settings.address
         else:
             kwargs["num_cpus"] = os.cpu_count() or 1
         try:
             ray.init(**kwargs)
         except (ConnectionError, RuntimeError, ValueError) as exc:
-            where = settings.ray_address or "a local instance"
+            where = settings.address or "a local instance"
             raise RayUnavailable(f"cannot start or join Ray ({where}): {exc}") from exc
-        log.info("ray: %s", "joined " + settings.ray_address if settings.ray_address else "local instance started")
+        log.info("ray: %s", "joined " + settings.address if settings.address else "local instance started")
         return ray

@@ -1,10 +1,13 @@
-"""Service settings: one pydantic-settings ``Settings``, from a TOML file and/or ``HITL_*`` variables.
+"""Service settings: one pydantic-settings ``Settings``, a typed section per concern, from a TOML file
+and/or ``HITL_*`` variables.
 
-Environment variables win over the file (``HITL_PORT=9000``); ``DATABASE_URL`` (or
-``HITL_DATABASE_URL``) selects the database, default SQLite in WAL mode under ``data_dir``.
-
-The hand-back rule's settings have the controller's names (``policy.hand_back.HAND_BACK_FIELDS``); a name
-they had before (``REMOVED``), from a file, a ``HITL_*`` variable or a keyword, is refused with the new one.
+Sections: ``[controller]`` (the asking signal and the hand-back rule, ``ControllerSettings``), ``[queue]``,
+``[cameras]``, ``[recording]``, ``[workers]``, ``[ray]``, ``[inference]``, ``[finetune]``; the service's
+own keys (address, database, robots, rate) stay at the top. Each bound is declared once, on its field.
+Environment variables win over the file, a section's with ``__`` (``HITL_PORT=9000``,
+``HITL_CONTROLLER__BUDGET=8``); ``DATABASE_URL`` (or ``HITL_DATABASE_URL``) selects the database, default
+SQLite in WAL mode under ``data_dir``. A name a setting had before (``REMOVED``), from a file, a variable
+or a keyword, is refused with its name now.
 """
 
 from __future__ import annotations
@@ -15,17 +18,52 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import AliasChoices, BaseModel, Field, field_validator, model_validator
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
-from policy.hand_back import HAND_BACK_FIELDS
+from policy.hand_back import ControllerConfig
 
 BUNDLED = Path(__file__).resolve().parents[1] / "policies"
 ENV_PREFIX = "HITL_"
-# a setting's name before the last release -> its name now (the controller's): the old one is refused, naming it
-REMOVED = dict(
-    zip(("trigger_mode", "budget_steps", "auto_return_steps", "cooldown_steps"), HAND_BACK_FIELDS[:4], strict=True)
-)
+ENV_NESTED = "__"
+_HAND_BACK = ("hand_back", "budget", "return_after", "cooldown", "resume", "watchdog", "assistance", "batch_invariant")
+# a setting's name before -> its name now ("section.key"); the old one is refused, naming the new one
+REMOVED: dict[str, str] = {
+    "trigger_mode": "controller.hand_back",
+    "budget_steps": "controller.budget",
+    "auto_return_steps": "controller.return_after",
+    "cooldown_steps": "controller.cooldown",
+    **{name: f"controller.{name}" for name in ("signal", "shadow_signals", *_HAND_BACK)},
+    "lease_seconds": "queue.lease_seconds",
+    "queue_order": "queue.order",
+    "cameras": "cameras.enabled",
+    "camera_hz": "cameras.hz",
+    "camera_gl": "cameras.gl",
+    "camera_width": "cameras.width",
+    "camera_height": "cameras.height",
+    "record_episodes": "recording.episodes",
+    "segment_flush_seconds": "recording.flush_seconds",
+    "segment_fsync": "recording.fsync",
+    "worker": "workers.kind",
+    "robots_per_process": "workers.robots_per_process",
+    "worker_niceness": "workers.niceness",
+    "freeze_idle": "workers.freeze_idle",
+    "ray_address": "ray.address",
+    "ray_namespace": "ray.namespace",
+    "ray_cpus_per_actor": "ray.cpus_per_actor",
+    "inference": "inference.backend",
+    "inference_gpus": "inference.gpus",
+    "inference_cpus": "inference.cpus",
+    "device": "inference.device",
+    "torch_threads": "inference.torch_threads",
+    "trace_policies": "inference.trace_policies",
+}
+# old names that are a section's name now: refused only where they hold a value, not a section
+_SECTION_NAMES = {"cameras", "inference"}
+
+
+def _section() -> ConfigDict:
+    return ConfigDict(extra="forbid")
 
 
 def bundled_policy(task: str) -> Path:
@@ -157,141 +195,17 @@ class FinetuneSettings(BaseModel):
         return v
 
 
-class Settings(BaseSettings):
-    # a variable set to "none" unsets an optional setting the file sets (`--set return_after=none`)
-    model_config = SettingsConfigDict(
-        env_prefix=ENV_PREFIX, extra="forbid", populate_by_name=True, env_parse_none_str="none"
-    )
+class ControllerSettings(ControllerConfig):
+    """``[controller]``: the asking signal, the signals scored beside it, and the controller's own settings
+    (``policy.hand_back.ControllerConfig``, whose fields and bounds these are)."""
 
-    data_dir: Path = Path("var")
-    database_url: str | None = Field(None, validation_alias=AliasChoices("HITL_DATABASE_URL", "DATABASE_URL"))
-    host: str = "127.0.0.1"
-    port: int = Field(8000, ge=0, le=65535)
-    control_hz: float = Field(10.0, ge=0, le=200, description="0: free-running (benchmarks)")
-    robots: list[RobotGroup] = Field(default_factory=lambda: [RobotGroup(task="lift-cube", count=1)])
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
     signal: str = Field(
         "choice-stall",
         description="the assistance signal that asks for help (docs/signals.md; 'denoising': the paper's)",
     )
-    assistance: bool = Field(
-        True, description="false: signals are scored and recorded, but no robot asks for help (shadow runs)"
-    )
     shadow_signals: list[str] = Field(default_factory=list, description="signals scored alongside, recorded")
-    hand_back: Literal["budgeted", "continuous"] = "budgeted"
-    budget: int = Field(4, ge=1, le=1000)
-    return_after: int | None = Field(
-        None, ge=1, description="also hand back after K operator steps on which the signal no longer wants help"
-    )
-    cooldown: int = Field(
-        10,
-        ge=0,
-        le=100_000,
-        description="after a hand-back, policy steps on which the robot does not ask again (urgent requests excepted:"
-        " the policy's next step would undo the takeover)",
-    )
-    resume: Literal["restart", "history"] = Field(
-        "restart",
-        description="after a hand-back, the policy's observation history restarts from the current frame ('restart') "
-        "or keeps the takeover's frames ('history': a policy that sees several frames sees the operator's motion)",
-    )
-    watchdog: float | None = Field(
-        None,
-        gt=0,
-        lt=1,
-        description="a robot that has used this fraction of its episode's horizon without success asks for help "
-        "once, whatever its signal says (unset: only the signal asks)",
-    )
-    lease_seconds: float = Field(10.0, gt=0, le=3600)
-    queue_order: Literal["priority", "cur", "fcfs"] = Field(
-        "priority",
-        description="how the assistance queue ranks requests: 'priority' (urgency plus wait, no robot starves), "
-        "'cur' (Fleet-DAgger's: stalled robots, then urgency), 'fcfs' (first come, first served); "
-        "server/fleet/assistance.py",
-    )
-    api_workers: int = Field(
-        0,
-        ge=0,
-        le=64,
-        description="0: the API and the console run in the fleet runtime's process; N: in N processes of their own, "
-        "which reach the runtime through a local socket and share the database (docs/architecture.md)",
-    )
-    console: bool = Field(
-        True,
-        description="serve the operator console at /console/ (its viser server listens on an internal "
-        "127.0.0.1 port that any local process can reach: docs/console.md)",
-    )
-    record_episodes: bool = False
-    cameras: bool = Field(
-        True, description="render the front and wrist camera views of robots someone watches (server/cameras.py)"
-    )
-    camera_hz: float = Field(2.0, gt=0, le=30, description="camera views per second of each watched robot")
-    camera_gl: Literal["osmesa", "egl"] = Field(
-        "osmesa", description="the camera renderer's OpenGL: osmesa (software, any machine) or egl (a GPU)"
-    )
-    camera_width: int = Field(160, ge=16, le=1280)
-    camera_height: int = Field(120, ge=16, le=960)
-    segment_flush_seconds: float = Field(
-        0.0,
-        ge=0,
-        le=60,
-        description="a takeover's steps reach the operating system at least this often; 0: each step before the "
-        "next tick, so a killed server loses none (docs/service.md, 'Durability')",
-    )
-    segment_fsync: bool = Field(
-        False, description="each flush also reaches the disk (fsync): a power loss loses no flushed step either"
-    )
-    max_body_bytes: int = Field(64 * 1024, ge=1024)
-    seed: int = 0
-    batch_invariant: bool = Field(
-        False, description="run the policy robot by robot: a robot's numbers do not depend on its batch (slower)"
-    )
-    freeze_idle: bool = Field(
-        False,
-        description="simulated robots only: a robot waiting for its operator, or under teleop without a new "
-        "command, is not stepped at all (its scene waits too), so results do not depend on operator latency",
-    )
-    torch_threads: int = Field(1, ge=1, le=256, description="server-side torch threads; workers take the other cores")
-    trace_policies: bool = Field(
-        True, description="serve each policy's noise network as a frozen TorchScript trace (inference-optimized on CPU)"
-    )
-    device: str = Field(
-        "cpu",
-        pattern=r"^(cpu|cuda(:\d+)?)$",
-        description="where the policies and the uncertainty run: cpu, cuda or cuda:N (physics: CPU workers)",
-    )
-    worker: Literal["process", "pool", "in-process", "ray"] = Field(
-        "process",
-        description="robot back end: a process per robot, robots_per_process robots per process (pool) or per Ray "
-        "actor (ray: pip install '.[ray]'), or tasks stepped in the control thread",
-    )
-    robots_per_process: int = Field(
-        8, ge=1, le=256, description="pool and ray back ends: robots sharing one process (one actor)"
-    )
-    ray_address: str | None = Field(
-        None,
-        description="ray back end: the cluster to join (host:port or ray://host:port); unset: a local instance "
-        "with this machine's CPUs",
-    )
-    ray_namespace: str = Field("hitl", min_length=1, max_length=64, description="Ray namespace of this fleet's actors")
-    ray_cpus_per_actor: float = Field(
-        1.0, gt=0, le=64, description="ray back end: the CPU share each robot actor reserves on its node"
-    )
-    inference: Literal["local", "ray"] = Field(
-        "local",
-        description="where each policy version's batched network calls run: in the control loop's process, or in "
-        "a Ray actor per version (pip install '.[ray]'; docs/architecture.md)",
-    )
-    inference_gpus: float = Field(
-        0.0, ge=0, le=8, description="inference = 'ray': GPUs each inference actor reserves (> 0: it runs on cuda)"
-    )
-    inference_cpus: float = Field(1.0, ge=0, le=64, description="inference = 'ray': CPUs each inference actor reserves")
-    worker_niceness: int = Field(
-        10, ge=0, le=19, description="CPU priority of the physics workers below the control loop (os.nice)"
-    )
-    policy_poll_seconds: float = Field(
-        2.0, gt=0, le=3600, description="how often the fleet checks the registry for a newly active policy version"
-    )
-    finetune: FinetuneSettings = Field(default_factory=FinetuneSettings)
 
     @field_validator("signal")
     @classmethod
@@ -309,15 +223,161 @@ class Settings(BaseSettings):
             cls._known_signal(name)
         return v
 
-    @field_validator("worker", "inference")
-    @classmethod
-    def _ray_installed(cls, v: str, info) -> str:
-        from server.ray_cluster import RayUnavailable, ray_available
+    def config(self) -> ControllerConfig:
+        """The controller's part of these settings."""
+        return ControllerConfig(**self.model_dump(include=set(ControllerConfig.model_fields)))
 
-        if v == "ray" and not ray_available():
-            what = f"{info.field_name} = 'ray'"
-            raise ValueError(str(RayUnavailable(f"{what} needs Ray, an optional extra: pip install '.[ray]'")))
-        return v
+
+class QueueSettings(BaseModel):
+    """``[queue]``: the assistance queue and its leases (``server/fleet/assistance.py``)."""
+
+    model_config = _section()
+
+    lease_seconds: float = Field(10.0, gt=0, le=3600, description="an operator's claim lapses after this long idle")
+    order: Literal["priority", "cur", "fcfs"] = Field(
+        "priority",
+        description="how requests are ranked: 'priority' (urgency plus wait, no robot starves), 'cur' "
+        "(Fleet-DAgger's: stalled robots, then urgency), 'fcfs' (first come, first served)",
+    )
+
+
+class CameraSettings(BaseModel):
+    """``[cameras]``: the console's camera views (``server/cameras.py``)."""
+
+    model_config = _section()
+
+    enabled: bool = Field(True, description="render the camera views of robots someone watches")
+    hz: float = Field(2.0, gt=0, le=30, description="camera views per second of each watched robot")
+    gl: Literal["osmesa", "egl"] = Field(
+        "osmesa", description="the renderer's OpenGL: osmesa (software, any machine) or egl (a GPU)"
+    )
+    width: int = Field(160, ge=16, le=1280)
+    height: int = Field(120, ge=16, le=960)
+
+
+class RecordingSettings(BaseModel):
+    """``[recording]``: what reaches the disk, and how often (docs/service.md, 'Durability')."""
+
+    model_config = _section()
+
+    episodes: bool = Field(False, description="record every episode, not only takeover segments")
+    flush_seconds: float = Field(
+        0.0,
+        ge=0,
+        le=60,
+        description="a takeover's steps reach the operating system at least this often; 0: each step before the "
+        "next tick, so a killed server loses none",
+    )
+    fsync: bool = Field(False, description="each flush also reaches the disk: a power loss loses no flushed step")
+
+
+class WorkerSettings(BaseModel):
+    """``[workers]``: where the robots' physics runs."""
+
+    model_config = _section()
+
+    kind: Literal["process", "pool", "in-process", "ray"] = Field(
+        "process",
+        description="a process per robot, robots_per_process robots per process (pool) or per Ray actor "
+        "(ray: pip install '.[ray]'), or tasks stepped in the control thread",
+    )
+    robots_per_process: int = Field(8, ge=1, le=256, description="pool and ray: robots sharing one process (actor)")
+    niceness: int = Field(10, ge=0, le=19, description="CPU priority of the workers below the control loop (os.nice)")
+    freeze_idle: bool = Field(
+        False,
+        description="simulated robots only: a robot waiting for its operator, or under teleop without a new "
+        "command, is not stepped at all, so results do not depend on operator latency",
+    )
+
+    @field_validator("kind")
+    @classmethod
+    def _ray(cls, v: str) -> str:
+        return _ray_installed(v, "workers.kind")
+
+
+class RaySettings(BaseModel):
+    """``[ray]``: the Ray cluster the ``ray`` workers and inference join."""
+
+    model_config = _section()
+
+    address: str | None = Field(
+        None, description="the cluster to join (host:port or ray://host:port); unset: a local instance"
+    )
+    namespace: str = Field("hitl", min_length=1, max_length=64, description="Ray namespace of this fleet's actors")
+    cpus_per_actor: float = Field(1.0, gt=0, le=64, description="the CPU share each robot actor reserves")
+
+
+class InferenceSettings(BaseModel):
+    """``[inference]``: where and how the policies' networks run."""
+
+    model_config = _section()
+
+    backend: Literal["local", "ray"] = Field(
+        "local",
+        description="each policy version's batched calls run in the control loop's process, or in a Ray actor "
+        "per version (pip install '.[ray]'; docs/architecture.md)",
+    )
+    device: str = Field("cpu", pattern=r"^(cpu|cuda(:\d+)?)$", description="cpu, cuda or cuda:N")
+    torch_threads: int = Field(1, ge=1, le=256, description="the control loop's torch threads")
+    trace_policies: bool = Field(True, description="serve each noise network as a frozen TorchScript trace")
+    gpus: float = Field(0.0, ge=0, le=8, description="backend 'ray': GPUs each actor reserves (> 0: on cuda)")
+    cpus: float = Field(1.0, ge=0, le=64, description="backend 'ray': CPUs each actor reserves")
+
+    @field_validator("backend")
+    @classmethod
+    def _ray(cls, v: str) -> str:
+        return _ray_installed(v, "inference.backend")
+
+
+def _ray_installed(v: str, name: str) -> str:
+    from server.ray_cluster import RayUnavailable, ray_available
+
+    if v == "ray" and not ray_available():
+        raise ValueError(str(RayUnavailable(f"{name} = 'ray' needs Ray, an optional extra: pip install '.[ray]'")))
+    return v
+
+
+class Settings(BaseSettings):
+    # a variable set to "none" unsets an optional setting the file sets (`--set controller.return_after=none`)
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX,
+        env_nested_delimiter=ENV_NESTED,
+        extra="forbid",
+        populate_by_name=True,
+        env_parse_none_str="none",
+    )
+
+    data_dir: Path = Path("var")
+    database_url: str | None = Field(None, validation_alias=AliasChoices("HITL_DATABASE_URL", "DATABASE_URL"))
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    control_hz: float = Field(10.0, ge=0, le=200, description="0: free-running (benchmarks)")
+    robots: list[RobotGroup] = Field(default_factory=lambda: [RobotGroup(task="lift-cube", count=1)])
+    seed: int = Field(0, description="robot r's episodes run seeds seed + 1000 r + k; also the sampling noise's")
+    api_workers: int = Field(
+        0,
+        ge=0,
+        le=64,
+        description="0: the API and the console run in the fleet runtime's process; N: in N processes of their own, "
+        "which reach the runtime through a local socket and share the database (docs/architecture.md)",
+    )
+    console: bool = Field(
+        True,
+        description="serve the operator console at /console/ (its viser server listens on an internal "
+        "127.0.0.1 port that any local process can reach: docs/console.md)",
+    )
+    max_body_bytes: int = Field(64 * 1024, ge=1024)
+    policy_poll_seconds: float = Field(
+        2.0, gt=0, le=3600, description="how often the fleet checks the registry for a newly active policy version"
+    )
+    controller: ControllerSettings = Field(default_factory=ControllerSettings)
+    queue: QueueSettings = Field(default_factory=QueueSettings)
+    cameras: CameraSettings = Field(default_factory=CameraSettings)
+    recording: RecordingSettings = Field(default_factory=RecordingSettings)
+    workers: WorkerSettings = Field(default_factory=WorkerSettings)
+    ray: RaySettings = Field(default_factory=RaySettings)
+    inference: InferenceSettings = Field(default_factory=InferenceSettings)
+    finetune: FinetuneSettings = Field(default_factory=FinetuneSettings)
 
     @model_validator(mode="before")
     @classmethod
@@ -335,7 +395,7 @@ class Settings(BaseSettings):
         dotenv_settings: PydanticBaseSettingsSource,
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
-        return init_settings, env_settings, RemovedEnv(settings_cls), dotenv_settings, file_secret_settings
+        return init_settings, RemovedEnv(settings_cls), env_settings, dotenv_settings, file_secret_settings
 
     @model_validator(mode="after")
     def _robots_present(self) -> Settings:
@@ -358,7 +418,8 @@ class Settings(BaseSettings):
 
     @classmethod
     def load(cls, path: str | Path | None = None, **overrides) -> Settings:
-        """Settings from ``path`` (TOML) with environment variables and ``overrides`` on top."""
+        """Settings from ``path`` (TOML) with environment variables and ``overrides`` on top, section by
+        section (``overrides``' sections are dicts: ``controller={"budget": 8}``)."""
         values: dict = {}
         if path is not None:
             path = Path(path)
@@ -370,9 +431,19 @@ class Settings(BaseSettings):
                 raise ValueError(f"{path}: invalid TOML: {exc}") from exc
             refuse_removed(values, f" in {path}")
         refuse_removed(overrides, " in the overrides")
-        env = cls()  # environment only, to know which keys the environment sets
-        merged = {**values, **{k: getattr(env, k) for k in env.model_fields_set}, **overrides}
-        return cls(**merged)
+        env = cls().model_dump(exclude_unset=True)  # environment only: what the environment sets
+        return cls(**_merged(_merged(values, env), overrides))
+
+
+def _merged(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``top`` on top, section by section."""
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = _merged(out[key], value)
+        else:
+            out[key] = value
+    return out
 
 
 class RemovedEnv(PydanticBaseSettingsSource):
@@ -383,19 +454,23 @@ class RemovedEnv(PydanticBaseSettingsSource):
         return None, field_name, False
 
     def __call__(self) -> dict[str, Any]:
-        upper = {k.upper() for k in os.environ}  # pydantic-settings reads them case-insensitively
+        env = {k.upper(): v for k, v in os.environ.items()}  # pydantic-settings reads them case-insensitively
         for old, new in REMOVED.items():
-            if f"{ENV_PREFIX}{old.upper()}" in upper:
-                raise ValueError(
-                    _removed(f"{ENV_PREFIX}{old.upper()}", f"{ENV_PREFIX}{new.upper()}", " in the environment")
-                )
+            value = env.get(f"{ENV_PREFIX}{old.upper()}")
+            if value is not None and not (old in _SECTION_NAMES and value.lstrip().startswith("{")):
+                raise ValueError(_removed(env_name(old), env_name(new), " in the environment"))
         return {}
+
+
+def env_name(key: str) -> str:
+    """The variable of a setting (``controller.budget`` -> ``HITL_CONTROLLER__BUDGET``)."""
+    return ENV_PREFIX + key.replace(".", ENV_NESTED).upper()
 
 
 def refuse_removed(values: Mapping[str, Any], where: str = "") -> None:
     """ValueError naming the new name of the first removed name (``REMOVED``) among ``values``' keys."""
     for old, new in REMOVED.items():
-        if old in values:
+        if old in values and not (old in _SECTION_NAMES and isinstance(values[old], Mapping)):
             raise ValueError(_removed(old, new, where))
 
 

@@ -119,7 +119,7 @@ def test_the_services_share_one_store_and_the_service_joins_the_cluster():
     head = services["ray-head"]["command"]
     port = next(a.split("=")[1] for a in head if a.startswith("--port="))
     assert services["service"]["environment"]["JOIN_RAY_CLUSTER"] == f"ray-head:{port}"
-    assert Settings.load(ROOT / "configs" / "compose.toml").ray_address == "auto"
+    assert Settings.load(ROOT / "configs" / "compose.toml").ray.address == "auto"
     assert "JOIN_RAY_CLUSTER" in (ROOT / "docker" / "entrypoint.sh").read_text()
 
 

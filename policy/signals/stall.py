@@ -18,8 +18,7 @@ A step's *stillness* is how much less than its usual stride the policy moves:
 
 with ``stride`` the median motion of the policy at the open-gripper steps of the held-out
 demonstrations, and stillness 0 while the gripper is closed or the policy is closing it (a grasp
-holds still on purpose). The threshold is the ``quantile`` of stillness over those steps (the
-policy moves slower than that on 5% of them); the robot
+holds still on purpose). The threshold is the ``quantile`` of stillness over those steps; the robot
 asks after ``patience`` consecutive steps over it. No observation term: the signal does not care
 whether the scene is new, only whether the policy is stuck in it.
 
@@ -32,15 +31,14 @@ the operator moved the end effector more than ``undo_min`` from where the robot 
 table, or up and down) and more than half of the policy's next motion that way goes back. And while
 a grasp the operator closed still holds, every policy step that would open the gripper asks again:
 a policy that cannot do the grasp does not know to keep it either, and reopens it a few steps into
-the lift (traced on lift-hammer, development seeds 2003, 2005 and 2007: the object drops and the
-operator grasps it again). The robot holds instead, and the operator carries on from where they
-left it. A plan that goes anywhere else (lifting the object the operator grasped) runs.
+the lift (the object drops and the operator grasps it again; docs/signals.md). The robot holds
+instead, and the operator carries on from where they left it.
+A plan that goes anywhere else (lifting the object the operator grasped) runs.
 
 **A grasp that goes nowhere** (``closed_grace``). Stillness is 0 while the gripper is closed: a grasp
 holds still on purpose while the fingers close. But a policy that closed on nothing, or on an object
-it cannot lift, then stands still, closed, to the end of the episode (lift-hook, development seed
-2006). With ``closed_grace`` = n, standing still counts again once the gripper has been closed for
-more than n scored steps in a row.
+it cannot lift, then stands still, closed, to the end of the episode. With ``closed_grace`` = n,
+standing still counts again once the gripper has been closed for more than n scored steps in a row.
 
 Both are off by default, as every ``stall`` result recorded before them was. ``reask_undo``'s requests
 are ``urgent``: a fleet's cooldown after a hand-back (``cooldown``) does not hold them back, since

@@ -23,7 +23,7 @@ one request at a time), the queue's length. With operators claiming the head of 
 takeovers in progress). Lease expiries are not counted: a request whose lease ran out goes back with
 its opening time, so one that was ahead of A is ahead again.
 
-**Other orders** (``Settings.queue_order``, for comparing allocations; ``hitl bench operators``):
+**Other orders** (``Settings.queue.order``, for comparing allocations; ``hitl bench operators``):
 ``"cur"`` is Fleet-DAgger's CUR allocation (Hoque et al., 2022): constraint violations first, then
 uncertainty, then risk. A constraint violation is read as a stalled robot, one the watchdog asked for
 (its episode used its share of the horizon without success; a faulted robot does not ask, it waits

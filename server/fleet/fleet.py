@@ -61,29 +61,29 @@ class Fleet:
     def __init__(self, settings: Settings, sessions: sessionmaker, workers: WorkerFactory | None = None) -> None:
         self.settings = settings
         self.sessions = sessions
-        self.queue = AssistanceQueue(settings.lease_seconds, settings.queue_order)
+        self.queue = AssistanceQueue(settings.queue.lease_seconds, settings.queue.order)
         self.recorder = Recorder(
             sessions,
             settings.data_dir,
-            settings.record_episodes,
-            settings.segment_flush_seconds,
-            settings.segment_fsync,
+            settings.recording.episodes,
+            settings.recording.flush_seconds,
+            settings.recording.fsync,
         )
         self.robots: dict[int, Robot] = {}
         self.lock = threading.RLock()
         self.policies = PolicySwap(settings, sessions, self.lock, self.robots)  # slots, and the lineages' versions
         self.operator_clock = OperatorClock()
         # how robots are started (the back end); public for the benchmarks, which read its overheads
-        self.worker_factory = workers if workers is not None else WORKERS[settings.worker](settings)
+        self.worker_factory = workers if workers is not None else WORKERS[settings.workers.kind](settings)
         self.lifecycle = Lifecycle(self.recorder, self.queue, self.policies, self.worker_factory, self.operator_clock)
         self.loop = ControlLoop(settings, self.robots, self.lock, self.queue, self.recorder, self.lifecycle)
         self.cameras = CameraFeed(
             self._camera_frame,
             self._record_images,
-            settings.camera_hz,
-            (settings.camera_width, settings.camera_height),
-            enabled=settings.cameras,
-            gl=settings.camera_gl,
+            settings.cameras.hz,
+            (settings.cameras.width, settings.cameras.height),
+            enabled=settings.cameras.enabled,
+            gl=settings.cameras.gl,
         )
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -117,7 +117,7 @@ class Fleet:
 
     def start(self) -> None:
         # the physics workers keep the cores busy: intra-op threads in the server only contend with them
-        torch.set_num_threads(self.settings.torch_threads)
+        torch.set_num_threads(self.settings.inference.torch_threads)
         self.spawn_workers()
         self._thread = threading.Thread(target=self.loop.run, args=(self._stop,), name="fleet-control", daemon=True)
         self._thread.start()

@@ -156,7 +156,7 @@ class ControlLoop:
         # simulated robots that only hold while they wait for their operator (or for a command) are not
         # stepped when ``freeze_idle``: their scene waits with them, and their frame stays current
         idle = set()
-        if self.settings.freeze_idle:
+        if self.settings.workers.freeze_idle:
             idle = {r.id for r in robots if r.mode == Mode.WAITING or (r.mode == Mode.TELEOP and r.id not in commands)}
 
         def send(rid: int, action: np.ndarray, source: str) -> None:

@@ -12,10 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from policy.checkpoint import CheckpointError, check_fits, load_calibration, load_policy
-from policy.controller import Controller, ControllerConfig
+from policy.controller import Controller
 from policy.devices import prepare_for_serving
 from policy.diffusion_policy import DiffusionPolicy
-from policy.hand_back import HAND_BACK_FIELDS
 from policy.signals import SignalError, load_signal
 from server.errors import ServiceError
 from server.inference import make_inference
@@ -56,16 +55,6 @@ class PolicySlot:
             return None
 
 
-def controller_config(settings: Settings) -> ControllerConfig:
-    return ControllerConfig(
-        **{name: getattr(settings, name) for name in HAND_BACK_FIELDS},  # one vocabulary: no translation
-        watchdog=settings.watchdog,
-        assistance=settings.assistance,
-        seed=settings.seed,
-        batch_invariant=settings.batch_invariant,
-    )
-
-
 def load_slot(settings: Settings, path: Path, task: str, version: int, lineage: str = "") -> PolicySlot:
     """The policy folder ``path`` ready to serve ``task`` (ServiceError 422 naming what is wrong: a folder
     that cannot be read, a checkpoint that cannot run the task, ``policy.checkpoint.check_fits``, a device
@@ -82,18 +71,19 @@ def load_slot(settings: Settings, path: Path, task: str, version: int, lineage: 
         raise ServiceError(422, exc.args[0]) from exc
     spec = make_task(task)
     try:
-        prepare_for_serving(policy, settings.device, settings.trace_policies)
+        prepare_for_serving(policy, settings.inference.device, settings.inference.trace_policies)
     except ValueError as exc:  # this machine lacks the device
         raise ServiceError(422, f"policy {path}: {exc}") from exc
     signals = {}
-    for name in dict.fromkeys([settings.signal, "denoising", *settings.shadow_signals]):
+    ctl = settings.controller
+    for name in dict.fromkeys([ctl.signal, "denoising", *ctl.shadow_signals]):
         try:
             signals[name] = load_signal(policy, path, name)
         except (SignalError, ValueError) as exc:
             raise ServiceError(422, f"policy {path}: signal {name!r} is not ready: {exc}") from exc
     _warn_if_miscalibrated(path)
     inference = make_inference(settings, path, policy, signals)  # here, or a Ray actor (server.inference)
-    controller = Controller(policy, signals, settings.signal, spec.action_space, controller_config(settings), inference)
+    controller = Controller(policy, signals, ctl.signal, spec.action_space, ctl.config(), inference, settings.seed)
     return PolicySlot(version, path, task, policy, float(signals["denoising"].threshold), controller, lineage)
 
 

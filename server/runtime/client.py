@@ -264,7 +264,7 @@ class RemoteFleet:
     def claim(self, robot_id: int, operator: str) -> AssistanceRequest:
         self.view(robot_id)  # 404 before a lease for a robot that does not exist
         held = lease.acquire(
-            self.sessions, robot_lease(robot_id), operator, self.settings.lease_seconds, reentrant=True
+            self.sessions, robot_lease(robot_id), operator, self.settings.queue.lease_seconds, reentrant=True
         )
         if held is None:
             raise ServiceError(409, f"robot {robot_id} is already controlled by another operator")
@@ -283,7 +283,7 @@ class RemoteFleet:
     def release(self, robot_id: int, operator: str) -> None:
         self._call("release", robot_id, operator)
         # the claim lease, if this operator's still runs: the next claim need not wait for it to lapse
-        held = lease.acquire(self.sessions, robot_lease(robot_id), operator, self.settings.lease_seconds, True)
+        held = lease.acquire(self.sessions, robot_lease(robot_id), operator, self.settings.queue.lease_seconds, True)
         if held is not None:
             lease.release(self.sessions, held)
 

@@ -1,11 +1,10 @@
 """The ``pool`` worker back end: several simulated robots per spawned process.
 
 With a process per robot, every control step of every robot is a context switch into another
-process: on a 2-core machine with 16 robots the workers spent 5.8 ms of CPU per env step against 3.9
-for one robot's worker alone (``hitl bench fleet``, ``docs/benchmarks/serving.md``). A host process here owns
+process, which costs CPU per env step (``hitl bench fleet``, ``docs/benchmarks/serving.md``). A host process here owns
 up to ``robots_per_process`` robots' tasks and answers their requests one at a time, a teleoperated
 robot's first, so one wake-up serves several robots and the fleet runs a few processes instead of one
-per robot (4.45 ms per env step at 16 robots, and a quarter of the memory).
+per robot.
 
 Each robot still has its own ``PoolWorker`` (the ``RobotWorker`` contract: one request in flight,
 ``poll`` never blocks, failures are ``WorkerFault``). A robot's error faults that robot only; a host

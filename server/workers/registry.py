@@ -1,4 +1,4 @@
-"""The worker back ends by name: the settings' ``worker`` selects the factory built from the settings.
+"""The worker back ends by name: the settings' ``workers.kind`` selects the factory built from the settings.
 
 Kept apart from the contract (``server.workers.base``), so that a back end imports the contract and
 the registry imports the back ends, and nothing imports back up. A new back end is a module
@@ -21,8 +21,8 @@ if TYPE_CHECKING:
 
 
 WORKERS: dict[str, Callable[[Settings], WorkerFactory]] = {
-    "process": lambda s: process_workers(s.worker_niceness),
-    "pool": lambda s: pool_workers(s.worker_niceness, s.robots_per_process),
+    "process": lambda s: process_workers(s.workers.niceness),
+    "pool": lambda s: pool_workers(s.workers.niceness, s.workers.robots_per_process),
     "in-process": lambda s: in_process_workers(),
-    "ray": lambda s: RayFactory(s, s.robots_per_process, s.ray_cpus_per_actor),
+    "ray": lambda s: RayFactory(s.ray, s.workers.robots_per_process, s.ray.cpus_per_actor),
 }

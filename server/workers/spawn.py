@@ -3,9 +3,8 @@ process): the spawn context, serving one request of a task, a cheap readiness ch
 mapping of a priority hint to a process's niceness.
 
 Two back ends, one set of parts: ``process`` keeps its own hot path (one request, one answer, no routing)
-because the pool with one robot per process measured 4.3% fewer fleet steps per second at 16 robots
-(``hitl bench fleet --robots 16 --worker process``, docs/benchmarks/serving.md): the fleet's default
-back end is not made slower for fewer lines.
+because the pool with one robot per process steps the fleet more slowly (``hitl bench fleet``,
+docs/benchmarks/serving.md): the fleet's default back end is not made slower for fewer lines.
 """
 
 from __future__ import annotations

@@ -11,10 +11,10 @@ def test_the_loop_bench_serves_a_fleet_with_the_bot_and_reports_from_the_databas
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)  # asks at once
     config = tmp_path / "fleet.toml"
     config.write_text(
-        f'worker = "in-process"\ncontrol_hz = 20\ntrace_policies = false\n'
+        'control_hz = 20\n[workers]\nkind = "in-process"\n[inference]\ntrace_policies = false\n'
         f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
     )
-    out = run_loop(4.0, "budgeted", config, tmp_path / "var", {"HITL_BUDGET": "2"}, progress=False)
+    out = run_loop(4.0, "budgeted", config, tmp_path / "var", {"HITL_CONTROLLER__BUDGET": "2"}, progress=False)
     assert out["mode"] == "budgeted" and out["robots"] == 1
     assert out["bot"]["takeovers"] >= 1 and out["bot"]["commands"] >= 1 and out["bot"]["errors"] == 0
     assert out["takeovers_asked_by"].get("choice-stall", 0) >= 1  # the default signal asked, the bot answered

@@ -97,7 +97,8 @@ def test_a_tiny_sweep_through_the_service_with_the_bot_at_a_persons_pace(tmp_pat
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)  # asks at every step
     config = tmp_path / "fleet.toml"
     config.write_text(
-        'worker = "in-process"\ncontrol_hz = 10\ntrace_policies = false\nhand_back = "budgeted"\nbudget = 2\n'
+        'control_hz = 10\n[workers]\nkind = "in-process"\n[inference]\ntrace_policies = false\n'
+        '[controller]\nhand_back = "budgeted"\nbudget = 2\n'
         f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
     )
     plan = OperatorsPlan(sizes=(2,), mix=FleetMix({"lift-cube": 1.0}), ticks=100, pace=Pace(2, 3, 4), config=config)

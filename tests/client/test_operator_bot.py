@@ -21,8 +21,10 @@ def test_the_bot_hands_back_once_the_object_is_held(tmp_path):
         data_dir=tmp_path / "var",
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
-        hand_back="continuous",  # only the operator hands back
-        cooldown=100_000,  # and the robot does not ask again this episode
+        controller={
+            "hand_back": "continuous",
+            "cooldown": 100_000,
+        },  # only the operator hands back; no new request this episode
         control_hz=40,
     )
     migrate(settings.db_url)

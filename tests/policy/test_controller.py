@@ -7,7 +7,6 @@ import torch
 from policy.config import DiffusionPolicyConfig
 from policy.controller import Controller, ControllerConfig, Mode
 from policy.diffusion_policy import DiffusionPolicy
-from policy.hand_back import HAND_BACK_FIELDS
 from policy.signals.base import Scores
 from sim.frame import RobotFrame
 from sim.spaces import TeleopCommand
@@ -263,15 +262,17 @@ def test_the_asking_signal_must_be_calibrated():
 
 
 def test_the_hand_back_rule_has_one_vocabulary():
-    """``HAND_BACK_FIELDS`` name the controller's hand-back settings, the service's and the assisted rollouts'
-    alike; the old alias ``calm_steps`` is gone (``return_after``)."""
+    """``ControllerConfig`` names and checks the controller's settings; the assisted rollouts' config builds it,
+    with the same names; the old alias ``calm_steps`` is gone (``return_after``)."""
     from dataclasses import fields
 
     from lab.assisted import AssistConfig
 
-    assert {f.name for f in fields(ControllerConfig)} >= set(HAND_BACK_FIELDS)
-    assert {f.name for f in fields(AssistConfig)} >= set(HAND_BACK_FIELDS)
+    assert {f.name for f in fields(AssistConfig)} >= set(ControllerConfig.model_fields) - {
+        "assistance"
+    }  # no driver: none
     assert not hasattr(ControllerConfig(), "calm_steps") and not hasattr(AssistConfig(), "mode")
+    assert AssistConfig(hand_back="continuous", budget=7).controller_config().budget == 7
     assert AssistConfig(hand_back="continuous").hand_back == "continuous"
-    with pytest.raises(ValueError, match="hand_back must be one of"):
+    with pytest.raises(ValueError, match="hand_back"):
         AssistConfig(hand_back="sometimes")

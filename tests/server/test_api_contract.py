@@ -48,7 +48,7 @@ def service(tmp_path_factory):
         data_dir=root / "var",
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
-        worker="in-process",
+        workers={"kind": "in-process"},
         control_hz=20,
     )
     migrate(settings.db_url)

@@ -101,7 +101,7 @@ def test_without_a_renderer_the_feed_says_why_and_stays_off(frames):
     finally:
         feed.close()
     off = CameraFeed(lambda rid: ("lift-cube", frames[0]), enabled=False)
-    assert not off.view(0).available and "cameras = false" in off.view(0).reason and off.process is None
+    assert not off.view(0).available and "cameras.enabled = false" in off.view(0).reason and off.process is None
 
 
 def test_a_renderer_that_dies_mid_run_turns_the_views_off_with_the_reason(frames):

@@ -27,8 +27,8 @@ def _fleet(tmp_path):
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
         control_hz=20,
-        budget=100,  # the takeover lasts until the hand-back
-        record_episodes=True,
+        controller={"budget": 100},  # the takeover lasts until the hand-back
+        recording={"episodes": True},
         console=False,
     )
     migrate(settings.db_url)

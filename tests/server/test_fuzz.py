@@ -42,9 +42,9 @@ def service(tmp_path_factory):
         data_dir=root / "var",
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
-        worker="in-process",
+        workers={"kind": "in-process"},
+        controller={"budget": 1000},  # a claimed robot stays under teleop while its commands are fuzzed
         control_hz=20,
-        budget=1000,  # a claimed robot stays under teleop while its commands are fuzzed
     )
     migrate(settings.db_url)
     sessions = session_factory(make_engine(settings.db_url))

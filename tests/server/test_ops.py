@@ -39,8 +39,9 @@ def service(tmp_path_factory):
     port = free_port()
     config = root / "ops.toml"
     config.write_text(
-        f'data_dir = "{root / "var"}"\nhost = "127.0.0.1"\nport = {port}\nworker = "in-process"\n'
-        "control_hz = 20\nbudget = 1000\nlease_seconds = 120\ntrace_policies = false\n\n"
+        f'data_dir = "{root / "var"}"\nhost = "127.0.0.1"\nport = {port}\ncontrol_hz = 20\n'
+        '[workers]\nkind = "in-process"\n[controller]\nbudget = 1000\n[queue]\nlease_seconds = 120\n'
+        "[inference]\ntrace_policies = false\n\n"
         f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
     )
     settings = Settings.load(config)

@@ -35,11 +35,10 @@ def _service(root, database_url: str | None):
         database_url=database_url,
         port=0,
         robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
-        worker="in-process",
+        workers={"kind": "in-process"},
+        controller={"budget": 3, "cooldown": 0},  # robots ask again at once after a hand-back
+        queue={"lease_seconds": 5.0},
         control_hz=20,
-        budget=3,
-        cooldown=0,  # robots ask again at once after a hand-back
-        lease_seconds=5.0,
         console=False,
     )
     settings.data_dir.mkdir(parents=True)
@@ -257,7 +256,7 @@ def test_hitl_serve_with_api_workers_serves_and_leaves_no_api_process_when_kille
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=1e9)
     config = tmp_path / "fleet.toml"
     config.write_text(
-        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nworker = "in-process"\nconsole = false\n'
+        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nconsole = false\n[workers]\nkind = "in-process"\n'
         f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
     )
     port = free_port()

@@ -31,11 +31,10 @@ def service(tmp_path_factory):
         data_dir=root / "var",
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
-        lease_seconds=1.5,
-        budget=3,
-        cooldown=0,  # robots ask again at once after a hand-back: each test finds them waiting and held
+        queue={"lease_seconds": 1.5},
+        # robots ask again at once after a hand-back: each test finds them waiting and held
+        controller={"budget": 3, "cooldown": 0, "shadow_signals": ["output-variance", "random"]},
         control_hz=20,
-        shadow_signals=["output-variance", "random"],
     )
     migrate(settings.db_url)
     sessions = session_factory(make_engine(settings.db_url))
@@ -291,7 +290,7 @@ def test_a_shadow_run_scores_every_step_and_never_asks(tmp_path):
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
         control_hz=20,
-        assistance=False,
+        controller={"assistance": False},
     )
     migrate(settings.db_url)
     token = create_token(session_factory(make_engine(settings.db_url)), "viewer", "viewer")

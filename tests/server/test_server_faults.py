@@ -40,7 +40,7 @@ def _asking_fleet(tmp_path, count: int = 1, **extra):
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=count, policy=policy)],
         control_hz=20,
-        budget=100,
+        controller={"budget": 100},
         **extra,
     )
     sessions = _sessions(settings)
@@ -78,13 +78,13 @@ def test_a_dead_worker_faults_restarts_and_closes_its_segment(tmp_path):
         restarted = wait_for(lambda: _worker_pid("robot-0"))
         assert again["restarts"] == 1 and restarted != pid
         # the restarted physics runs below the control loop again
-        assert wait_for(lambda: os.getpriority(os.PRIO_PROCESS, restarted) == settings.worker_niceness)
+        assert wait_for(lambda: os.getpriority(os.PRIO_PROCESS, restarted) == settings.workers.niceness)
         outcomes = [e["outcome"] for e in httpx.get(api + "/episodes", headers=h).json()]
         assert "faulted" in outcomes  # the interrupted episode is closed, not left open
 
 
 def test_a_dead_pool_process_faults_its_robots_which_restart_on_a_new_one(tmp_path):
-    settings, sessions, h = _asking_fleet(tmp_path, 2, worker="pool", robots_per_process=2)
+    settings, sessions, h = _asking_fleet(tmp_path, 2, workers={"kind": "pool", "robots_per_process": 2})
     with Service(settings) as svc:
         api = svc.url + "/api/v1"
         _claim_robot_0(api, h)
@@ -109,7 +109,7 @@ def test_a_dead_pool_process_faults_its_robots_which_restart_on_a_new_one(tmp_pa
 
 
 def test_a_dead_ray_actor_faults_its_robot_mid_takeover_which_restarts_on_the_restarted_actor(tmp_path, ray_local):
-    settings, sessions, h = _asking_fleet(tmp_path, worker="ray", ray_cpus_per_actor=0.5)
+    settings, sessions, h = _asking_fleet(tmp_path, workers={"kind": "ray"}, ray={"cpus_per_actor": 0.5})
     with Service(settings) as svc:
         api = svc.url + "/api/v1"
         _claim_robot_0(api, h)
@@ -165,7 +165,7 @@ def _asking_config(tmp_path, extra: str = ""):
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold=-1.0)
     config = tmp_path / "fleet.toml"
     config.write_text(
-        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\nbudget = 100\n{extra}'
+        f'data_dir = "{tmp_path / "var"}"\ncontrol_hz = 20\n{extra}[controller]\nbudget = 100\n'
         f'[[robots]]\ntask = "lift-cube"\ncount = 1\npolicy = "{policy}"\n'
     )
     settings = Settings.load(config)
@@ -203,7 +203,7 @@ def _restart_to_recover(config, port: int, url: str) -> None:
     [(signal.SIGKILL, "recovered", "crash-recovered"), (signal.SIGTERM, "closed", "service-stopped")],
 )
 def test_a_takeover_survives_the_server_stopping(tmp_path, sig, status, ended_by):
-    config, settings, sessions, h = _asking_config(tmp_path, "record_episodes = true\n")
+    config, settings, sessions, h = _asking_config(tmp_path, "[recording]\nepisodes = true\n")
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     api = url + "/api/v1"
@@ -255,7 +255,7 @@ def test_whole_episodes_are_recorded_when_asked(tmp_path):
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
         control_hz=0,
-        record_episodes=True,
+        recording={"episodes": True},
     )
     sessions = _sessions(settings)
     h = {"Authorization": f"Bearer {create_token(sessions, 'viewer', 'viewer')}"}
@@ -277,11 +277,10 @@ def test_a_dead_inference_actor_holds_the_fleet_which_resumes_when_ray_restarts_
         data_dir=tmp_path / "var",
         port=free_port(),
         robots=[RobotGroup(task="lift-cube", count=2, policy=policy)],
-        worker="in-process",
-        inference="ray",
-        inference_cpus=0.5,
+        workers={"kind": "in-process"},
+        inference={"backend": "ray", "cpus": 0.5},
+        recording={"episodes": True},
         control_hz=20,
-        record_episodes=True,
         console=False,
     )
     sessions = _sessions(settings)
@@ -313,7 +312,7 @@ def test_every_applied_teleop_step_survives_a_kill_right_after_it(tmp_path):
     the takeover's file even when the server is killed at once. (Here the denoising field makes each
     step big enough to fill a chunk every second step, so the old flush policy kept most steps too;
     ``tests/storage/test_storage.py`` tells the policies apart on small steps.)"""
-    config, settings, sessions, h = _asking_config(tmp_path, 'worker = "in-process"\nconsole = false\n')
+    config, settings, sessions, h = _asking_config(tmp_path, 'console = false\n[workers]\nkind = "in-process"\n')
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     proc = _serve(config, port)

@@ -5,11 +5,9 @@ from pydantic import ValidationError
 
 from hitl.cli import main
 from policy.controller import ControllerConfig
-from policy.hand_back import HAND_BACK_FIELDS
 from server.auth import Principal, authenticate, create_token, revoke_token
 from server.db import make_engine, migrate, session_factory
-from server.fleet.slots import controller_config
-from server.settings import REMOVED, Settings, bundled_policy
+from server.settings import REMOVED, ControllerSettings, Settings, bundled_policy, env_name
 
 
 def test_settings_come_from_the_file_with_environment_and_flags_on_top(tmp_path, monkeypatch):
@@ -27,15 +25,24 @@ def test_settings_come_from_the_file_with_environment_and_flags_on_top(tmp_path,
 
 def test_a_variable_set_to_none_unsets_what_the_file_sets(tmp_path, monkeypatch):
     config = tmp_path / "fleet.toml"
-    config.write_text('hand_back = "continuous"\nreturn_after = 3\nwatchdog = 0.8\n')
-    assert Settings.load(config).return_after == 3
-    monkeypatch.setenv("HITL_RETURN_AFTER", "none")  # as `--set return_after=none` gives it
-    monkeypatch.setenv("HITL_WATCHDOG", "none")
-    s = Settings.load(config)
-    assert s.return_after is None and s.watchdog is None and s.hand_back == "continuous"
-    monkeypatch.setenv("HITL_RETURN_AFTER", "nothing")
+    config.write_text('[controller]\nhand_back = "continuous"\nreturn_after = 3\nwatchdog = 0.8\n')
+    assert Settings.load(config).controller.return_after == 3
+    monkeypatch.setenv("HITL_CONTROLLER__RETURN_AFTER", "none")  # as `--set controller.return_after=none` gives it
+    monkeypatch.setenv("HITL_CONTROLLER__WATCHDOG", "none")
+    s = Settings.load(config).controller
+    assert s.return_after is None and s.watchdog is None and s.hand_back == "continuous"  # the file's others stay
+    monkeypatch.setenv("HITL_CONTROLLER__RETURN_AFTER", "nothing")
     with pytest.raises(ValueError, match="return_after"):
         Settings.load(config)
+
+
+def test_a_section_merges_key_by_key_from_the_file_the_environment_and_the_flags(tmp_path, monkeypatch):
+    config = tmp_path / "fleet.toml"
+    config.write_text("[controller]\nbudget = 8\ncooldown = 3\n[queue]\nlease_seconds = 30\n")
+    monkeypatch.setenv("HITL_CONTROLLER__COOLDOWN", "5")
+    s = Settings.load(config, controller={"watchdog": 0.5})
+    assert (s.controller.budget, s.controller.cooldown, s.controller.watchdog) == (8, 5, 0.5)
+    assert s.queue.lease_seconds == 30 and s.queue.order == "priority"
 
 
 @pytest.mark.parametrize(
@@ -45,7 +52,12 @@ def test_a_variable_set_to_none_unsets_what_the_file_sets(tmp_path, monkeypatch)
         ("bogus = 1", "bogus"),
         ('[[robots]]\ntask = "lift-banana"', "unknown task 'lift-banana'"),
         ("control_hz = -1", "control_hz"),
-        ('signal = "vibes"', "unknown signal 'vibes'"),
+        ('[controller]\nsignal = "vibes"', "unknown signal 'vibes'"),
+        ("[controller]\nbudget = 0", "budget"),
+        ("[controller]\nwatchdog = 1.0", "watchdog"),
+        ("[controller]\nbogus = 1", "bogus"),
+        ("[cameras]\nhz = 0", "hz"),
+        ('[queue]\norder = "lifo"', "order"),
         ("robots = []", "at least one robot"),
         ("[finetune]\ntakeover_tail = 0", "takeover_tail"),
         (
@@ -69,19 +81,19 @@ def test_groups_may_share_one_policy_folder():
 
 def test_the_cli_reports_a_bad_config_without_a_traceback(tmp_path, capsys):
     config = tmp_path / "bad.toml"
-    config.write_text("budget = 0")
+    config.write_text("[controller]\nbudget = 0")
     assert main(["serve", "--config", str(config)]) == 2
     assert "budget" in capsys.readouterr().err
-    config.write_text("budget_steps = 4")
+    config.write_text("budget = 4")
     assert main(["serve", "--config", str(config)]) == 2
-    assert f"setting 'budget_steps' in {config} was renamed: use 'budget'" in capsys.readouterr().err
+    assert f"setting 'budget' in {config} was renamed: use 'controller.budget'" in capsys.readouterr().err
     assert main(["serve", "--config", str(tmp_path / "missing.toml")]) == 2
     capsys.readouterr()
     assert main(["finetune", "--data-dir", str(tmp_path / "var"), "--takeover-tail", "-1", "--quiet"]) == 2
     assert "takeover tail must be an integer >= 1 or None, got -1" in capsys.readouterr().err
 
 
-def test_a_removed_hand_back_name_is_refused_naming_the_new_one(tmp_path, monkeypatch):
+def test_a_removed_name_is_refused_naming_the_new_one(tmp_path, monkeypatch):
     config = tmp_path / "old.toml"
     for old, new in REMOVED.items():
         config.write_text(f"{old} = 1\n")
@@ -93,36 +105,59 @@ def test_a_removed_hand_back_name_is_refused_naming_the_new_one(tmp_path, monkey
             Settings(**{old: 1})
         monkeypatch.setenv(f"HITL_{old.upper()}", "1")
         with pytest.raises(
-            ValueError, match=f"'HITL_{old.upper()}' in the environment was renamed: use 'HITL_{new.upper()}'"
+            ValueError, match=f"'HITL_{old.upper()}' in the environment was renamed: use '{env_name(new)}'"
         ):
             Settings()
         monkeypatch.delenv(f"HITL_{old.upper()}")
-    assert Settings().budget == 4  # nothing left behind
+    assert Settings().controller.budget == 4  # nothing left behind
+    assert env_name("controller.budget") == "HITL_CONTROLLER__BUDGET"
 
 
-def test_the_hand_back_settings_are_the_controllers_names():
-    assert set(REMOVED.values()) <= set(HAND_BACK_FIELDS)  # ``resume`` came later: it had no old name
-    assert set(HAND_BACK_FIELDS) <= set(Settings.model_fields) and not set(REMOVED) & set(Settings.model_fields)
-    s = Settings(hand_back="continuous", budget=9, return_after=4, cooldown=0, resume="history")
+def test_every_new_name_is_a_setting_and_no_old_one_is():
+    for new in set(REMOVED.values()):
+        section, key = new.split(".")
+        assert key in type(getattr(Settings(), section)).model_fields, new
+    assert not (set(REMOVED) - {"cameras", "inference"}) & set(Settings.model_fields)  # those two are sections now
+
+
+def test_the_controller_section_is_the_controllers_config_with_the_signals():
+    s = Settings(
+        controller={"hand_back": "continuous", "budget": 9, "return_after": 4, "cooldown": 0, "resume": "history"}
+    )
     expected = ControllerConfig(hand_back="continuous", budget=9, return_after=4, cooldown=0, resume="history")
-    assert controller_config(s) == expected
-    assert Settings().resume == "restart"
-    assert Settings().budget == 4 and Settings().cooldown == 10 and Settings().return_after is None
+    assert s.controller.config() == expected and type(s.controller.config()) is ControllerConfig
+    assert set(ControllerSettings.model_fields) - set(ControllerConfig.model_fields) == {"signal", "shadow_signals"}
+    for name, field in ControllerConfig.model_fields.items():  # each bound declared once: the same field object
+        assert ControllerSettings.model_fields[name].metadata == field.metadata, name
+    c = Settings().controller
+    assert (c.resume, c.budget, c.cooldown, c.return_after) == ("restart", 4, 10, None)
+    with pytest.raises(ValidationError, match="budget"):
+        ControllerConfig(budget=0)
+
+
+def test_set_flags_name_a_sections_key():
+    from hitl.server_commands import _settings_env
+
+    assert _settings_env(["controller.budget=8", "port=9000"]) == {"HITL_CONTROLLER__BUDGET": "8", "HITL_PORT": "9000"}
+    with pytest.raises(ValueError, match="setting 'budget' in --set was renamed: use 'controller.budget'"):
+        _settings_env(["budget=8"])
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        _settings_env(["controller.=8"])
 
 
 @pytest.mark.parametrize("source", ["toml", "env", "keyword", "constructor"])
 def test_a_removed_name_beside_its_new_one_is_refused_too(tmp_path, monkeypatch, source):
     config = tmp_path / "both.toml"
-    config.write_text("budget_steps = 4\nbudget = 4\n" if source == "toml" else "")
+    config.write_text("budget = 4\n[controller]\nbudget = 4\n" if source == "toml" else "")
     if source == "env":
-        monkeypatch.setenv("HITL_BUDGET_STEPS", "4")
         monkeypatch.setenv("HITL_BUDGET", "4")
-    old, new = ("HITL_BUDGET_STEPS", "HITL_BUDGET") if source == "env" else ("budget_steps", "budget")
+        monkeypatch.setenv("HITL_CONTROLLER__BUDGET", "4")
+    old, new = ("HITL_BUDGET", "HITL_CONTROLLER__BUDGET") if source == "env" else ("budget", "controller.budget")
     with pytest.raises(ValueError, match=f"setting {old!r}.* was renamed: use {new!r}"):
         if source == "constructor":
-            Settings(budget_steps=4, budget=4)
+            Settings(budget=4, controller={"budget": 4})
         else:
-            Settings.load(config, **({"budget_steps": 4, "budget": 4} if source == "keyword" else {}))
+            Settings.load(config, **({"budget": 4, "controller": {"budget": 4}} if source == "keyword" else {}))
 
 
 def test_tokens_are_stored_hashed_and_can_be_revoked(tmp_path):
@@ -172,20 +207,20 @@ def test_half_the_demo_fleet_is_in_distribution_and_each_problem_type_has_a_robo
 def test_the_ray_config_is_the_demo_fleet_on_ray_actors():
     configs = Path(__file__).resolve().parents[2] / "configs"
     demo, ray = Settings.load(configs / "demo.toml"), Settings.load(configs / "ray.toml")
-    assert ray.worker == "ray" and demo.worker != "ray" and ray.ray_address is None  # a local instance
-    same = {"worker", "robots_per_process", "ray_cpus_per_actor"}
+    assert ray.workers.kind == "ray" and demo.workers.kind != "ray" and ray.ray.address is None  # a local instance
+    same = {"workers", "ray"}
     assert ray.model_dump(exclude=same) == demo.model_dump(exclude=same)
 
 
 def test_ray_settings_are_validated():
     with pytest.raises(ValidationError):
-        Settings(worker="ray", ray_cpus_per_actor=0)
+        Settings(workers={"kind": "ray"}, ray={"cpus_per_actor": 0})
     with pytest.raises(ValidationError):
-        Settings(worker="ray", ray_namespace="")
+        Settings(workers={"kind": "ray"}, ray={"namespace": ""})
 
 
 def test_the_ray_back_end_without_ray_installed_is_refused_at_load(monkeypatch):
     monkeypatch.setattr("server.ray_cluster.ray_available", lambda: False)
     with pytest.raises(ValidationError, match=r"pip install '.\[ray\]'"):
-        Settings(worker="ray")
-    assert Settings(worker="pool").worker == "pool"  # the others need nothing more
+        Settings(workers={"kind": "ray"})
+    assert Settings(workers={"kind": "pool"}).workers.kind == "pool"  # the others need nothing more

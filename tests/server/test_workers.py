@@ -49,7 +49,7 @@ def test_the_in_process_worker_keeps_the_contract():
 
 
 def test_the_process_worker_keeps_the_contract_and_maps_priorities_to_niceness():
-    worker = WORKERS["process"](Settings(worker="process", worker_niceness=7))(3, "lift-cube")
+    worker = WORKERS["process"](Settings(workers={"kind": "process", "niceness": 7}))(3, "lift-cube")
     try:
         assert worker.name == "robot-3" and worker.pid != os.getpid()  # its own process
         assert worker.prioritize(Priority.BACKGROUND)
@@ -122,7 +122,7 @@ def test_process_workers_isolate_each_robot_in_its_own_process():
 
 
 def test_pool_workers_keep_the_contract_and_share_a_process():
-    factory = WORKERS["pool"](Settings(worker="pool", worker_niceness=7, robots_per_process=2))
+    factory = WORKERS["pool"](Settings(workers={"kind": "pool", "niceness": 7, "robots_per_process": 2}))
     a, b, c = factory(0, "lift-cube"), factory(1, "lift-cube"), factory(2, "lift-cube")
     try:
         assert a.host is b.host and c.host is not a.host  # two robots per process
@@ -204,7 +204,7 @@ def _actor_pid(worker) -> int:
 
 
 def test_ray_workers_keep_the_contract_and_share_an_actor(ray_local):
-    factory = WORKERS["ray"](Settings(worker="ray", robots_per_process=2, ray_cpus_per_actor=0.5))
+    factory = WORKERS["ray"](Settings(workers={"kind": "ray", "robots_per_process": 2}, ray={"cpus_per_actor": 0.5}))
     a, b, c = factory(0, "lift-cube"), factory(1, "lift-cube"), factory(2, "lift-cube")
     try:
         assert a.host is b.host and c.host is not a.host  # two robots per actor
@@ -227,7 +227,7 @@ def test_ray_workers_keep_the_contract_and_share_an_actor(ray_local):
 
 
 def test_a_ray_actor_that_dies_faults_its_robots_and_ray_restarts_it(ray_local):
-    factory = WORKERS["ray"](Settings(worker="ray", robots_per_process=4, ray_cpus_per_actor=0.5))
+    factory = WORKERS["ray"](Settings(workers={"kind": "ray", "robots_per_process": 4}, ray={"cpus_per_actor": 0.5}))
     a, b = factory(0, "lift-cube"), factory(1, "lift-cube")
     try:
         a.request_reset(1)
@@ -255,7 +255,7 @@ def test_a_ray_actor_that_dies_faults_its_robots_and_ray_restarts_it(ray_local):
 
 
 def test_a_ray_robot_whose_task_cannot_be_built_faults_alone(ray_local):
-    factory = WORKERS["ray"](Settings(worker="ray", robots_per_process=4, ray_cpus_per_actor=0.5))
+    factory = WORKERS["ray"](Settings(workers={"kind": "ray", "robots_per_process": 4}, ray={"cpus_per_actor": 0.5}))
     bad, good = factory(0, "no-such-task"), factory(1, "lift-cube")
     try:
         bad.request_reset(1)

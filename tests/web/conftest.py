@@ -21,9 +21,13 @@ BROWSER_TIMEOUT_MS = 90_000  # software WebGL on a loaded 2-core box paints abou
 CONFIG = """\
 data_dir = "{data}"
 control_hz = 10
+
+[controller]
 hand_back = "continuous"
 cooldown = 10
 shadow_signals = ["denoising"]
+
+[queue]
 lease_seconds = 20
 
 [[robots]]

@@ -150,8 +150,8 @@ def test_an_unknown_order_is_refused_when_the_queue_is_made_and_the_settings_nam
     import typing
 
     from server.fleet.assistance import QUEUE_ORDERS
-    from server.settings import Settings
+    from server.settings import QueueSettings
 
     with pytest.raises(ValueError, match="unknown queue order 'lifo'"):
         AssistanceQueue(lease_seconds=30, order="lifo")
-    assert typing.get_args(Settings.model_fields["queue_order"].annotation) == QUEUE_ORDERS
+    assert typing.get_args(QueueSettings.model_fields["order"].annotation) == QUEUE_ORDERS

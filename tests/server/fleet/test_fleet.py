@@ -36,22 +36,22 @@ class Recorded(InProcessWorker):
         return True
 
 
-def _fleet(tmp_path, threshold=-1.0, horizon=1000, count=1, workers=None, success_z=None, **settings):
+def _fleet(tmp_path, threshold=-1.0, horizon=1000, count=1, factory=None, success_z=None, **settings):
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", threshold)
     s = Settings(
         data_dir=tmp_path / "var",
         robots=[RobotGroup(task="lift-cube", count=count, policy=policy)],
-        trace_policies=False,
+        inference={"trace_policies": False},
         **settings,
     )
     migrate(s.db_url)
     made = []
 
-    def factory(robot_id, task):
+    def make(robot_id, task):
         made.append(Recorded(KinematicTask(horizon, success_z)))
         return made[-1]
 
-    fleet = Fleet(s, session_factory(make_engine(s.db_url)), workers or factory)
+    fleet = Fleet(s, session_factory(make_engine(s.db_url)), factory or make)
     fleet.spawn_workers()  # start the workers without the loop thread: ticks by hand
     return fleet, made
 
@@ -93,7 +93,7 @@ def test_commands_between_ticks_are_applied_once_in_order_or_refused(tmp_path):
 
 
 def test_budgeted_takeover_hands_back_and_a_lease_expiry_requeues(tmp_path):
-    fleet, workers = _fleet(tmp_path, budget=2, lease_seconds=0.05, count=2)
+    fleet, workers = _fleet(tmp_path, controller={"budget": 2}, queue={"lease_seconds": 0.05}, count=2)
     fleet.tick()
     fleet.claim(0, "op")
     for _ in range(2):
@@ -209,7 +209,7 @@ def test_metrics_report_the_longest_wait_to_a_claim_and_the_oldest_unclaimed_req
 def test_served_evaluated_and_assisted_episodes_take_the_same_actions(tmp_path):
     """The fleet (real simulator, in-process workers), ``hitl rollout``'s loop and ``hitl assist``'s
     loop, same seeds and settings, send the same actions: one controller."""
-    fleet, _ = _fleet(tmp_path, threshold=1e9, count=2, workers=_recording_real_workers())
+    fleet, _ = _fleet(tmp_path, threshold=1e9, count=2, factory=_recording_real_workers())
     workers = [fleet.robots[i].worker for i in (0, 1)]
     seeds = [fleet.robots[i].seed for i in (0, 1)]
     episodes = [fleet.view(i).episode_id for i in (0, 1)]
@@ -261,7 +261,7 @@ def _episodes(fleet):
 
 
 def test_waiting_does_not_use_up_the_horizon_and_a_timeout_waits_for_the_hand_back(tmp_path):
-    fleet, workers = _fleet(tmp_path, horizon=5, hand_back="continuous", return_after=1000)
+    fleet, workers = _fleet(tmp_path, horizon=5, controller={"hand_back": "continuous", "return_after": 1000})
     for _ in range(30):  # asks at once, then waits six horizons' worth of ticks for an operator
         fleet.tick()
     robot = fleet.view(0)
@@ -283,7 +283,7 @@ def test_waiting_does_not_use_up_the_horizon_and_a_timeout_waits_for_the_hand_ba
 
 
 def test_a_takeover_ends_with_the_episode_only_at_success_or_with_the_lease(tmp_path):
-    fleet, _ = _fleet(tmp_path, horizon=3, success_z=1.05, hand_back="continuous", return_after=1000)
+    fleet, _ = _fleet(tmp_path, horizon=3, success_z=1.05, controller={"hand_back": "continuous", "return_after": 1000})
     fleet.tick()
     fleet.claim(0, "op")
     fleet.tick()  # the claim applies; no command yet: the robot holds (holds do not use up the horizon)
@@ -298,7 +298,9 @@ def test_a_takeover_ends_with_the_episode_only_at_success_or_with_the_lease(tmp_
     assert _episodes(fleet)[0].outcome == "success"
 
     # a lease that runs out past the horizon: the request goes back to the queue, and the episode ends
-    lapsed, _ = _fleet(tmp_path / "lease", horizon=2, lease_seconds=0.05, hand_back="continuous")
+    lapsed, _ = _fleet(
+        tmp_path / "lease", horizon=2, queue={"lease_seconds": 0.05}, controller={"hand_back": "continuous"}
+    )
     lapsed.tick()
     lapsed.claim(0, "op")
     for _ in range(3):
@@ -315,7 +317,7 @@ def test_a_takeover_ends_with_the_episode_only_at_success_or_with_the_lease(tmp_
 
 
 def test_a_cooldown_after_the_hand_back_keeps_a_robot_from_flooding_the_queue(tmp_path):
-    fleet, _ = _fleet(tmp_path, budget=2, cooldown=3)  # threshold -1: always wants help
+    fleet, _ = _fleet(tmp_path, controller={"budget": 2, "cooldown": 3})  # threshold -1: always wants help
     fleet.tick()
     fleet.claim(0, "op")
     for _ in range(2):
@@ -331,7 +333,7 @@ def test_a_cooldown_after_the_hand_back_keeps_a_robot_from_flooding_the_queue(tm
 
 
 def test_the_watchdog_asks_once_when_an_episode_runs_long(tmp_path):
-    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=10, watchdog=0.5, budget=1, cooldown=0)
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=10, controller={"watchdog": 0.5, "budget": 1, "cooldown": 0})
     modes = []
     for _ in range(6):  # the signal never asks; five policy steps are half the horizon
         fleet.tick()
@@ -350,7 +352,7 @@ def test_the_watchdog_asks_once_when_an_episode_runs_long(tmp_path):
 def test_an_accepted_command_renews_the_lease(tmp_path):
     import time
 
-    fleet, _ = _fleet(tmp_path, lease_seconds=0.3, hand_back="continuous")
+    fleet, _ = _fleet(tmp_path, queue={"lease_seconds": 0.3}, controller={"hand_back": "continuous"})
     fleet.tick()
     fleet.claim(0, "op")
     for _ in range(6):  # 0.6 s of driving, two leases' worth, with no heartbeat
@@ -366,7 +368,7 @@ def test_an_accepted_command_renews_the_lease(tmp_path):
 def test_a_worker_that_dies_while_a_step_is_sent_faults_alone_and_the_fleet_runs_on(tmp_path):
     from server.workers import WorkerFault
 
-    fleet, workers = _fleet(tmp_path, threshold=1e9, count=2, cooldown=0)
+    fleet, workers = _fleet(tmp_path, threshold=1e9, count=2, controller={"cooldown": 0})
     fleet.tick()
 
     def dead(action, hold=False):
@@ -384,7 +386,7 @@ def test_a_worker_that_dies_while_a_step_is_sent_faults_alone_and_the_fleet_runs
 def test_a_lease_that_runs_out_while_paused_ends_that_takeover(tmp_path):
     import time
 
-    fleet, _ = _fleet(tmp_path, lease_seconds=0.05, hand_back="continuous")
+    fleet, _ = _fleet(tmp_path, queue={"lease_seconds": 0.05}, controller={"hand_back": "continuous"})
     fleet.tick()
     fleet.claim(0, "alice")
     fleet.command(0, "alice", UP)
@@ -404,7 +406,7 @@ def test_a_lease_that_runs_out_while_paused_ends_that_takeover(tmp_path):
 def test_freeze_idle_steps_a_waiting_or_idle_teleop_robot_only_on_its_operators_commands(tmp_path):
     """With ``freeze_idle`` the scene of a robot that waits for its operator (or for the next command)
     waits too: the asking step's hold is the only hold it gets, so its numbers do not depend on latency."""
-    fleet, workers = _fleet(tmp_path, freeze_idle=True, budget=2, cooldown=0)
+    fleet, workers = _fleet(tmp_path, workers={"freeze_idle": True}, controller={"budget": 2, "cooldown": 0})
     fleet.tick()  # threshold -1: the robot asks at once; that step's hold is sent
     assert fleet.view(0).mode == "waiting" and len(workers[0].actions) == 1
     clock = fleet.view(0).frame.clock
@@ -426,7 +428,7 @@ def test_claims_and_releases_never_wait_for_a_tick_in_progress(tmp_path):
     import threading
     import time
 
-    fleet, workers = _fleet(tmp_path, hand_back="continuous", return_after=1000)
+    fleet, workers = _fleet(tmp_path, controller={"hand_back": "continuous", "return_after": 1000})
     fleet.tick()  # threshold -1: the robot asks
     in_tick, done = threading.Event(), threading.Event()
 
@@ -473,7 +475,7 @@ def test_claims_and_releases_never_wait_for_a_tick_in_progress(tmp_path):
 
 
 def test_a_claim_whose_request_ends_before_the_next_tick_changes_nothing(tmp_path):
-    fleet, _ = _fleet(tmp_path, lease_seconds=0.05, hand_back="continuous")
+    fleet, _ = _fleet(tmp_path, queue={"lease_seconds": 0.05}, controller={"hand_back": "continuous"})
     fleet.tick()
     fleet.claim(0, "op")
     import time
@@ -497,7 +499,7 @@ def test_a_waiting_robot_shows_the_request_the_queue_holds_and_its_takeover_reco
     from storage.paths import in_store
     from storage.segments import read_segment
 
-    fleet, _ = _fleet(tmp_path, budget=2)
+    fleet, _ = _fleet(tmp_path, controller={"budget": 2})
     fleet.tick()  # threshold -1: choice-stall (threshold 1) asks at once
     view, req = fleet.view(0), fleet.queue.get(0)
     assert view.mode == "waiting" and view.ask == req.ask
@@ -550,7 +552,7 @@ def test_a_waiting_robot_shows_the_request_the_queue_holds_and_its_takeover_reco
 def test_the_watchdogs_and_a_requested_help_show_as_the_queue_ranks_them(tmp_path):
     from server.api.robots import summary
 
-    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=10, watchdog=0.5, budget=1)
+    fleet, _ = _fleet(tmp_path, threshold=1e9, horizon=10, controller={"watchdog": 0.5, "budget": 1})
     fleet.tick()
     # a robot that has not asked shows the asking signal's latest score and threshold, and no reason
     live = summary(fleet.view(0)).asking
@@ -618,7 +620,7 @@ def test_a_served_robots_control_state_has_one_writer_the_control_loop(tmp_path)
 
     from policy.hitl_state import WrongWriter
 
-    fleet, _ = _fleet(tmp_path, hand_back="continuous", return_after=1000, control_hz=100)
+    fleet, _ = _fleet(tmp_path, controller={"hand_back": "continuous", "return_after": 1000}, control_hz=100)
     stop = threading.Event()
     loop = threading.Thread(target=fleet.loop.run, args=(stop,), daemon=True)
     loop.start()

@@ -10,7 +10,7 @@ def _settings(tmp_path, policy):
     return Settings(
         data_dir=tmp_path / "var",
         robots=[RobotGroup(task="lift-cube", count=1, policy=policy)],
-        trace_policies=False,
+        inference={"trace_policies": False},
     )
 
 
@@ -44,7 +44,10 @@ def test_a_device_this_machine_lacks_is_refused_with_its_name(tmp_path):
     from server.errors import ServiceError
 
     policy = tiny_policy_folder(tmp_path / "policy", "lift-cube", 0.5)
-    settings = _settings(tmp_path, policy).model_copy(update={"device": "cuda:99"})  # no machine has that one
+    settings = _settings(tmp_path, policy)
+    settings = settings.model_copy(
+        update={"inference": settings.inference.model_copy(update={"device": "cuda:99"})}
+    )  # no machine has that one
     with pytest.raises(ServiceError, match="'cuda:99'") as err:
         load_slot(settings, policy, "lift-cube", 1)
     assert err.value.status == 422
@@ -56,8 +59,8 @@ def test_the_device_setting_is_validated():
 
     for bad in ("gpu", "cuda:x", "mps"):
         with pytest.raises(ValidationError, match="device"):
-            Settings(device=bad)
-    assert Settings(device="cuda:1").device == "cuda:1"
+            Settings(inference={"device": bad})
+    assert Settings(inference={"device": "cuda:1"}).inference.device == "cuda:1"
 
 
 def test_a_policy_trained_on_another_observation_layout_is_refused_naming_the_channels(tmp_path):
