@@ -7,7 +7,7 @@ EXTRAS ?= dev
 comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
-.PHONY: install osmesa demo test lint docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
+.PHONY: install osmesa demo test lint docs cameras-docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
 	hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-hand-back-docs loop-cooldown-docs asking-dev-docs choice-dev-docs \
 	operator-dev-docs fleet-release-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs clean
@@ -287,6 +287,10 @@ asking-dev-docs: install
 
 # docs/benchmarks/serving.md, "This release's fleet rate": 16 robots on pool workers, the loop's CPU split into the
 # policy, each signal and the loop's own, beside the previous release's figure (fleet.json) (about 2 min)
+# docs/policy.md, "The cameras a policy sees": what rendering them costs per step, and what they show
+cameras-docs: install
+	$(BIN)/hitl bench cameras --steps 60 --figure docs/figures/policy-cameras.png --out docs/results/sim/cameras.json --quiet > /dev/null
+
 fleet-release-docs: install
 	$(BIN)/hitl bench fleet --robots 16 --seconds 15 --worker pool --compare docs/results/serving/fleet.json \
 		--out docs/results/serving/fleet-release.json --quiet > /dev/null

@@ -338,4 +338,33 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     q.add_argument("--quiet", action="store_true")
     add_uncertainty_args(q)
     q.set_defaults(func=_cmd_bench)
+
+    q = what.add_parser("cameras", help="the policy's cameras: render cost per step, MuJoCo's defaults vs as served")
+    q.add_argument(
+        "--tasks", nargs="+", default=None, help="tasks (default: lift-cube, lift-hammer, cup-stack, open-drawer)"
+    )
+    q.add_argument("--steps", type=positive_int, default=60, help="control steps of an expert episode per task")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--figure", type=Path, default=None, help="PNG of what the policy sees")
+    q.add_argument("--out", type=Path, default=None, help="JSON file to write (also printed)")
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=_cmd_bench_cameras)
     return what
+
+
+def _cmd_bench_cameras(args: argparse.Namespace) -> int:
+    import json
+
+    from bench.cameras import TASKS, CameraBench, bench_cameras, plot_policy_views
+    from bench.provenance import stamped
+
+    plan = CameraBench(tuple(args.tasks or TASKS), args.seed, args.steps)
+    result, views = bench_cameras(plan, progress=not args.quiet)
+    if args.figure is not None:
+        result["figure"] = str(plot_policy_views(views, args.figure))
+    text = json.dumps(stamped(result), indent=2)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    print(text)
+    return 0

@@ -1,4 +1,6 @@
-"""What a robot's cameras see: MuJoCo renders a task's cameras from a state's joint positions.
+"""What a robot's cameras show its operator: MuJoCo renders a task's cameras from a state's joint positions.
+
+(The policy's own cameras are ``sim.vision``'s.)
 
 An operator of a real robot works from its camera feeds; the console shows the viewed robot's front and
 wrist cameras (``server.cameras``). A ``CameraRig`` holds its own copy of a task's model and data and
@@ -18,7 +20,7 @@ import numpy as np
 
 from sim.frame import pose_model
 
-CAMERAS = {"front": "agentview", "wrist": "robot0_eye_in_hand"}  # our name -> robosuite's camera
+CAMERAS = {"front": "agentview", "wrist": "robot0_eye_in_hand"}  # the console's: our name -> robosuite's camera
 DEFAULT_SIZE = (160, 120)  # width, height
 VISUAL_GROUP = 1  # robosuite puts visual geoms in group 1, collision geoms in 0, target markers in 2
 

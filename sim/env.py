@@ -10,7 +10,6 @@ experts, and object poses for 3D playback.
 from __future__ import annotations
 
 import logging
-import os
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
@@ -19,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from sim.rotations import mat_to_rot6d, rot6d_to_mat, rot6d_to_rotvec, wxyz_to_xyzw
 from sim.spaces import ActionSpace, TeleopCommand, TeleopTarget
+from sim.vision import CameraSpec, PolicyCameras
 
 TABLE_TOP_Z = 0.8
 TABLE_FULL_SIZE = (0.8, 0.8, 0.05)
@@ -36,7 +36,6 @@ def _quiet_robosuite() -> None:
     Its logger's level is reset when robosuite is imported, so a filter (which
     survives that) keeps only errors.
     """
-    os.environ.setdefault("MUJOCO_GL", "disable")
     logger = logging.getLogger("robosuite_logs")
     if not any(getattr(f, "_hitl", False) for f in logger.filters):
         only_errors = logging.Filter()
@@ -174,6 +173,8 @@ class Task(ABC):
     action_space: ActionSpace
     object_name: str
     init_joint_noise: float = INIT_JOINT_NOISE  # radians, gaussian, the robot's joints at reset
+    # the cameras a policy of this task sees, as the paper's (``sim.cameras.CameraSpec``)
+    cameras: tuple[CameraSpec, ...] = ()
 
     def __init__(self) -> None:
         self._env = None
@@ -181,6 +182,8 @@ class Task(ABC):
         self._clock = 0
         self._seed: int | None = None
         self._gripper = -1.0  # the gripper command in force (our convention: -1 open, +1 closed)
+        self._cameras: PolicyCameras | None = None  # built on the first ``images`` call
+        self.with_images = False  # each frame carries what the policy's cameras see (``RobotFrame.images``)
 
     # -- subclass hooks ---------------------------------------------------
     @abstractmethod
@@ -318,6 +321,15 @@ class Task(ABC):
         """The task's live ``mujoco.MjData``, for reading the scene (``sim.rays``). Read-only."""
         return self.sim.data._data
 
+    def images(self) -> dict[str, np.ndarray]:
+        """What the policy's cameras (``cameras``) see now: camera name -> (size, size, 3) uint8 RGB, rendered
+        from this task's own simulation state (``sim.cameras.PolicyCameras``)."""
+        if not self.cameras:
+            return {}
+        if self._cameras is None:
+            self._cameras = PolicyCameras(self.mj_model(), self.cameras)
+        return self._cameras.render(self.mj_data())
+
     def joint_positions(self) -> np.ndarray:
         """(nq,) the simulation's joint positions: with the task's model and ``placed_poses``, they pose every
         body."""
@@ -398,6 +410,9 @@ class Task(ABC):
         return {"task": self.name, "object": self.object_name, "horizon": self.horizon}
 
     def close(self) -> None:
+        if self._cameras is not None:
+            self._cameras.close()
+            self._cameras = None
         if self._env is not None:
             self._env.close()
             self._env = None

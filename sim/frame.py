@@ -29,7 +29,9 @@ class RobotFrame:
     info: the task's episode details, set once ``done``; qpos: (nq,) the simulation's joint positions
     and placed: model body -> (position, quaternion xyzw) of the bodies the task places without a joint
     (``Task.placed_poses``), together enough for a viewer holding the task's model to pose every body
-    (``pose_model``: the console's scene, the camera views).
+    (``pose_model``: the console's scene, the camera views); images: what the policy's cameras see after
+    this step (``Task.images``: camera name -> (size, size, 3) uint8), when the task renders them
+    (``Task.with_images``), else empty.
     """
 
     obs: np.ndarray
@@ -48,6 +50,7 @@ class RobotFrame:
     info: dict = field(default_factory=dict)
     qpos: np.ndarray | None = None
     placed: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    images: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def gripper_command(self) -> float:
@@ -76,6 +79,7 @@ class RobotFrame:
             info=task.episode_info() if done else {},
             qpos=task.joint_positions(),
             placed=task.placed_poses(),
+            images=task.images() if task.with_images else {},
         )
 
 

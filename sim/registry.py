@@ -34,9 +34,12 @@ def _check(name: str) -> None:
         raise KeyError(f"unknown task {name!r}; registered tasks: {', '.join(TASKS)}")
 
 
-def make_task(name: str) -> Task:
+def make_task(name: str, images: bool = False) -> Task:
+    """The task ``name``; ``images``: its frames carry what its policy's cameras see (``Task.cameras``)."""
     _check(name)
-    return TASKS[name]()
+    task = TASKS[name]()
+    task.with_images = images
+    return task
 
 
 def make_expert(name: str, retry: bool = False, style: OperatorStyle | str = OperatorStyle.CARRY_ON) -> Expert:

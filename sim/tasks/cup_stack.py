@@ -18,6 +18,7 @@ from sim.env import TABLE_TOP_Z, ObsSpec, Task, TaskGoal
 from sim.objects import CupGeometry, make_cup
 from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
+from sim.vision import CameraSpec
 
 # metres, horizontal distance green cup centre to red cup centre. At 10 cm a policy trained on this
 # observation still inserted 4 of 20 cups unassisted (docs/policy.md); at 15 cm the red cup is hidden
@@ -50,6 +51,7 @@ class CupStackTask(Task):
     problem = "partial observability"
     horizon = 400
     obs_spec = CUP_OBS
+    cameras = (CameraSpec("side", 104, 96), CameraSpec("wrist", 104, 96), CameraSpec("front", 104, 96))  # the paper's
     action_space = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
     object_name = "cups"
 

@@ -31,6 +31,7 @@ from sim.env import TABLE_TOP_Z, ObsSpec, Task, TaskGoal
 from sim.rays import RAYS, FingerRays
 from sim.rotations import quat_to_rot6d
 from sim.spaces import ActionSpace
+from sim.vision import CameraSpec
 
 LIFT_HEIGHT = 0.04  # success: the object's root is this much above where it rested
 EXTENT_NOISE = 0.002  # m, std of the perceived bounding box's error per axis and step
@@ -122,6 +123,7 @@ class LiftTask(Task):
     problem = "distribution shift"
     horizon = 150
     obs_spec = LIFT_OBS
+    cameras = (CameraSpec("front", 84, 76), CameraSpec("wrist", 84, 76))  # the paper's Lift-sim: 76 x 76 crops
     action_space = LIFT_WORKSPACE
 
     def __init__(self, object_key: str) -> None:

@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from sim.env import TABLE_TOP_Z, ObsSpec, Task, TaskGoal
 from sim.objects import CabinetGeometry, make_cabinet
 from sim.spaces import ActionSpace
+from sim.vision import CameraSpec
 
 OPEN_DISTANCE = 0.10  # metres of slide travel
 WRONG_DRAWER_TOLERANCE = 0.03  # other drawers may move this much
@@ -47,6 +48,9 @@ class OpenDrawerTask(Task):
     problem = "action multi-modality"
     horizon = 250
     obs_spec = DRAWER_OBS
+    # the paper's drawer policy sees one camera (96 x 96 crops); robosuite's front view faces the robot from
+    # across the table and sees the cabinet's back, its side view sees the arm and the drawers' handles
+    cameras = (CameraSpec("side", 104, 96),)
     action_space = ActionSpace(pos_low=(-0.25, -0.25, 0.80), pos_high=(0.20, 0.25, 1.15))
     object_name = "cabinet"
     init_joint_noise = 0.005  # radians: the gripper starts within about 0.5 cm of the same place
