@@ -23,7 +23,7 @@ Data exchange (``data_commands``):
 Benchmarks, reports and figures (``report_commands``, ``bench_commands``, ``console_commands``; the
 code is in ``bench/``):
   bench         uncertainty, signals, fleet, api, segments, loop, operators, nights, finetune-load, hitl,
-                hitl-service, floor, finetune, console: each prints its measurements as JSON
+                hitl-service, floor, finetune, console, cameras: each prints its measurements as JSON
   report        sanity (the paper's sanity checks), separation (every signal's AUROC), novelty (how far
                 states lie outside a policy's training range), resume (whether a policy finishes after
                 a few operator steps), pregrasp (whether the lift policy closes and lifts once the

@@ -175,6 +175,8 @@ class Task(ABC):
     init_joint_noise: float = INIT_JOINT_NOISE  # radians, gaussian, the robot's joints at reset
     # the cameras a policy of this task sees, as the paper's (``sim.cameras.CameraSpec``)
     cameras: tuple[CameraSpec, ...] = ()
+    with_images: bool = False  # each frame carries what the policy's cameras see (``RobotFrame.images``)
+    _cameras: PolicyCameras | None = None  # built on the first ``images`` call
 
     def __init__(self) -> None:
         self._env = None
@@ -182,8 +184,6 @@ class Task(ABC):
         self._clock = 0
         self._seed: int | None = None
         self._gripper = -1.0  # the gripper command in force (our convention: -1 open, +1 closed)
-        self._cameras: PolicyCameras | None = None  # built on the first ``images`` call
-        self.with_images = False  # each frame carries what the policy's cameras see (``RobotFrame.images``)
 
     # -- subclass hooks ---------------------------------------------------
     @abstractmethod

@@ -138,6 +138,7 @@ class KinematicTask:
     ``success_z`` is set and the end effector is at or above it. Fleet unit tests run on it in-process."""
 
     name = "lift-cube"
+    with_images = False  # no renderer: its frames carry no camera images
 
     def __init__(self, horizon: int = 1000, success_z: float | None = None):
         spec = make_task("lift-cube")
