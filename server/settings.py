@@ -26,14 +26,13 @@ from policy.hand_back import ControllerConfig
 BUNDLED = Path(__file__).resolve().parents[1] / "policies"
 ENV_PREFIX = "HITL_"
 ENV_NESTED = "__"
-_HAND_BACK = ("hand_back", "budget", "return_after", "cooldown", "resume", "watchdog", "assistance", "batch_invariant")
 # a setting's name before -> its name now ("section.key"); the old one is refused, naming the new one
 REMOVED: dict[str, str] = {
     "trigger_mode": "controller.hand_back",
     "budget_steps": "controller.budget",
     "auto_return_steps": "controller.return_after",
     "cooldown_steps": "controller.cooldown",
-    **{name: f"controller.{name}" for name in ("signal", "shadow_signals", *_HAND_BACK)},
+    **{name: f"controller.{name}" for name in ("signal", "shadow_signals", *ControllerConfig.model_fields)},
     "lease_seconds": "queue.lease_seconds",
     "queue_order": "queue.order",
     "cameras": "cameras.enabled",
@@ -60,10 +59,7 @@ REMOVED: dict[str, str] = {
 }
 # old names that are a section's name now: refused only where they hold a value, not a section
 _SECTION_NAMES = {"cameras", "inference"}
-
-
-def _section() -> ConfigDict:
-    return ConfigDict(extra="forbid")
+_SECTION = ConfigDict(extra="forbid")  # a section's keys are its fields, no others
 
 
 def bundled_policy(task: str) -> Path:
@@ -231,7 +227,7 @@ class ControllerSettings(ControllerConfig):
 class QueueSettings(BaseModel):
     """``[queue]``: the assistance queue and its leases (``server/fleet/assistance.py``)."""
 
-    model_config = _section()
+    model_config = _SECTION
 
     lease_seconds: float = Field(10.0, gt=0, le=3600, description="an operator's claim lapses after this long idle")
     order: Literal["priority", "cur", "fcfs"] = Field(
@@ -244,7 +240,7 @@ class QueueSettings(BaseModel):
 class CameraSettings(BaseModel):
     """``[cameras]``: the console's camera views (``server/cameras.py``)."""
 
-    model_config = _section()
+    model_config = _SECTION
 
     enabled: bool = Field(True, description="render the camera views of robots someone watches")
     hz: float = Field(2.0, gt=0, le=30, description="camera views per second of each watched robot")
@@ -258,7 +254,7 @@ class CameraSettings(BaseModel):
 class RecordingSettings(BaseModel):
     """``[recording]``: what reaches the disk, and how often (docs/service.md, 'Durability')."""
 
-    model_config = _section()
+    model_config = _SECTION
 
     episodes: bool = Field(False, description="record every episode, not only takeover segments")
     flush_seconds: float = Field(
@@ -274,7 +270,7 @@ class RecordingSettings(BaseModel):
 class WorkerSettings(BaseModel):
     """``[workers]``: where the robots' physics runs."""
 
-    model_config = _section()
+    model_config = _SECTION
 
     kind: Literal["process", "pool", "in-process", "ray"] = Field(
         "process",
@@ -298,7 +294,7 @@ class WorkerSettings(BaseModel):
 class RaySettings(BaseModel):
     """``[ray]``: the Ray cluster the ``ray`` workers and inference join."""
 
-    model_config = _section()
+    model_config = _SECTION
 
     address: str | None = Field(
         None, description="the cluster to join (host:port or ray://host:port); unset: a local instance"
@@ -310,7 +306,7 @@ class RaySettings(BaseModel):
 class InferenceSettings(BaseModel):
     """``[inference]``: where and how the policies' networks run."""
 
-    model_config = _section()
+    model_config = _SECTION
 
     backend: Literal["local", "ray"] = Field(
         "local",

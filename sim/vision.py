@@ -65,17 +65,11 @@ def fast_model(model):
         if m.geom_group[g] == VISUAL_GROUP and b not in colour:
             colour[b] = _visual_colour(m, g)
     for g in range(m.ngeom):
-        b = int(m.geom_bodyid[g])
-        if not robot[b]:
-            continue
-        if m.geom_group[g] == VISUAL_GROUP:
-            m.geom_group[g] = HIDDEN_GROUP
-        elif m.geom_group[g] == COLLISION_GROUP:
-            m.geom_group[g] = VISUAL_GROUP
-            m.geom_matid[g] = -1
+        b, group = int(m.geom_bodyid[g]), m.geom_group[g]
+        if robot[b] and group == COLLISION_GROUP:  # drawn, in its body's colour
+            m.geom_group[g], m.geom_matid[g] = VISUAL_GROUP, -1
             m.geom_rgba[g] = colour.get(b, m.geom_rgba[g])
-    for g in range(m.ngeom):  # everything else's collision geoms stay undrawn
-        if not robot[int(m.geom_bodyid[g])] and m.geom_group[g] == COLLISION_GROUP:
+        elif (robot[b] and group == VISUAL_GROUP) or group == COLLISION_GROUP:  # the robot's meshes, others' collision
             m.geom_group[g] = HIDDEN_GROUP
     return m
 
@@ -100,7 +94,6 @@ class PolicyCameras:
     def __init__(self, model, specs: tuple[CameraSpec, ...]) -> None:
         import mujoco
 
-        self._mujoco = mujoco
         self.specs = tuple(specs)
         self.model = fast_model(model)
         camera = mujoco.mjtObj.mjOBJ_CAMERA
@@ -115,7 +108,7 @@ class PolicyCameras:
         self.option.geomgroup[VISUAL_GROUP] = 1
         self._renderers = {size: mujoco.Renderer(self.model, size, size) for size in {s.size for s in self.specs}}
         for r in self._renderers.values():
-            r.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+            r.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0  # the scene keeps its flags across renders
 
     def render(self, data) -> dict[str, np.ndarray]:
         """The policy's views of ``data`` (the robot's own ``MjData``, as it stands after its step)."""
@@ -123,7 +116,6 @@ class PolicyCameras:
         for spec in self.specs:
             renderer = self._renderers[spec.size]
             renderer.update_scene(data, camera=POLICY_CAMERAS[spec.name], scene_option=self.option)
-            renderer.scene.flags[self._mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
             out[spec.name] = renderer.render().copy()
         return out
 
