@@ -87,11 +87,18 @@ def _cmd_tasks(args: argparse.Namespace) -> int:
 
 
 def _cmd_demos(args: argparse.Namespace) -> int:
-    from sim.demos import record_demos
+    from sim.demos import DemoRecipe, ensure_demos, record_demos
     from sim.rollout import ExecutionNoise
 
     noise = ExecutionNoise(args.pos_noise, args.rot_noise) if args.pos_noise or args.rot_noise else None
-    paths, ok = record_demos(args.task, args.episodes, args.out, seed=args.seed, progress=not args.quiet, noise=noise)
+    if args.workers > 1:  # the recipe's missing seeds in that many processes (sim.demos.ensure_demos)
+        recipe = DemoRecipe(args.task, args.episodes, args.seed, args.pos_noise, args.rot_noise, args.images)
+        paths = ensure_demos(recipe, args.out, progress=not args.quiet, workers=args.workers)
+        print(f"wrote {len(paths)} missing episodes of {recipe.command(str(args.out))}")
+        return 0
+    paths, ok = record_demos(
+        args.task, args.episodes, args.out, seed=args.seed, progress=not args.quiet, noise=noise, images=args.images
+    )
     print(f"wrote {len(paths)} episodes ({ok} successful) to {Path(args.out).resolve()}")
     return 0
 
@@ -160,6 +167,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--pos-noise", type=float, default=0.0, help="DART: std of executed target position noise (m)")
     p.add_argument("--rot-noise", type=float, default=0.0, help="DART: std of executed target yaw noise (rad)")
+    p.add_argument(
+        "--images",
+        action="store_true",
+        help="as a policy that sees cameras: record the task's cameras' frames, the robot's own state as observation",
+    )
+    p.add_argument("--workers", type=int, default=1, help="record in this many processes (the missing seeds only)")
     p.set_defaults(func=_cmd_demos)
 
     p = sub.add_parser("inspect", help="check episode files; --recover salvages truncated ones")

@@ -22,15 +22,23 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from policy.train import TrainConfig, train_policy
     from sim.demos import read_recipe
     from sim.registry import make_task
+    from sim.vision import CameraSpec
     from storage.dataset import DatasetConfig, load_dataset
     from storage.obs_layout import describe, mismatched
     from storage.paths import portable
 
-    task = make_task(args.task)  # validates the name; the simulator is not built
-    frame = ObjectFrame.from_obs_spec(task.obs_spec) if args.frame == "object" else None  # before any data
+    make_task(args.task)  # validates the name; the simulator is not built
     ds = load_dataset(
         args.data, DatasetConfig(obs_horizon=args.obs_horizon, action_horizon=args.action_horizon, split_seed=args.seed)
     )
+    # episodes with frames train a policy that sees them, on the task as such a policy observes it
+    task = make_task(args.task, images=bool(ds.cameras))
+    cameras = tuple(CameraSpec.from_json(c) for c in ds.cameras)
+    if cameras and (lacks := sorted({c.name for c in cameras} - {c.name for c in task.cameras})):
+        raise ValueError(f"{args.data} holds frames of cameras {lacks} that task {args.task} does not declare")
+    if cameras and args.frame == "object":
+        raise ValueError(f"{args.data} holds camera frames: a policy that sees cameras has no object frame")
+    frame = ObjectFrame.from_obs_spec(task.obs_spec) if args.frame == "object" else None
     if other := mismatched(zip(ds.names, ds.meta, strict=True), task.obs_spec.labels()):
         name, why = next(iter(other.items()))
         raise ValueError(
@@ -56,6 +64,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         if args.obs_fourier_octaves is None
         else args.obs_fourier_octaves,
         object_frame=frame,
+        cameras=cameras,
+        image_channels=args.image_channels,
     )
     check_fits({"policy": cfg.to_dict(), **layout_info(task.obs_spec)}, args.task, args.out)  # before training
     if args.symmetry_augment and task.symmetry_order < 2:
@@ -233,6 +243,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--network", choices=["unet", "mlp"], default="unet")
     p.add_argument("--down-dims", type=int, nargs="+", default=[64, 128])
     p.add_argument("--obs-encoder-dims", type=int, nargs="*", default=[256, 256])
+    p.add_argument(
+        "--image-channels", type=int, default=32, help="width of each camera's encoder (episodes with frames)"
+    )
     p.add_argument("--obs-horizon", type=int, default=1)
     p.add_argument("--action-horizon", type=int, default=1)
     p.add_argument("--n-action-steps", type=int, default=None)

@@ -215,7 +215,7 @@ def run_assisted(
         ep.operator.append(step.source == keys.SOURCE_OPERATOR)
         ep.actions.append(step.action)
         if step.source == keys.SOURCE_OPERATOR:  # called before the step: the observation it acted on
-            ep.takeover_pairs.append((task.observe().astype(np.float32), np.asarray(step.action, np.float32)))
+            ep.takeover_pairs.append((task.observation().astype(np.float32), np.asarray(step.action, np.float32)))
         ep.policy_in_control.append(step.source == keys.SOURCE_POLICY or step.asked)
         if step.asked:
             ep.asked_at.append(len(ep.operator) - 1)

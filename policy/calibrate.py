@@ -28,6 +28,7 @@ from policy.diffusion_policy import DiffusionPolicy
 from policy.heldout import HeldOutCheck, HeldOutError, check_held_out
 from policy.uncertainty import UncertaintyConfig, UncertaintyEstimator
 from sim.rotations import quat_to_rot6d
+from storage import keys
 from storage.dataset import DatasetConfig, DemoDataset, load_dataset
 from storage.paths import portable
 
@@ -83,6 +84,26 @@ def current_actions(ds: DemoDataset, rows: np.ndarray, starts: np.ndarray) -> np
     return np.concatenate([pose[:, 0:3], rot, gripper[:, None]], axis=1).astype(np.float32)
 
 
+@torch.no_grad()
+def seen_windows(policy: DiffusionPolicy, ds: DemoDataset, index: np.ndarray, batch: int = 256) -> np.ndarray:
+    """(M, H, seen_dim) float32: what the policy sees at the sample rows ``index`` of ``ds``
+    (``DemoDataset.sample_index``): the state histories, and for a policy that sees cameras what its
+    encoders make of their frames (``DiffusionPolicy.encode_observation``, centred crops), encoded once."""
+    obs, _ = ds.windows(index)
+    obs = obs.astype(np.float32)
+    cameras = [c.name for c in policy.config.cameras]
+    if not cameras:
+        return obs
+    if lacks := [c for c in cameras if c not in ds.images]:
+        raise CalibrationError(f"{ds.folder} holds no frames of camera(s) {lacks} the policy sees")
+    out = []
+    for i in range(0, len(index), batch):
+        frames = ds.image_windows(index[i : i + batch])
+        images = {c: torch.as_tensor(frames[keys.image_key(c)]) for c in cameras}
+        out.append(policy.encode_observation(torch.as_tensor(obs[i : i + batch]), images).numpy())
+    return np.concatenate(out) if out else np.zeros((0, obs.shape[1], policy.seen_dim), np.float32)
+
+
 def _validation_episodes(
     policy: DiffusionPolicy, data: str | Path, val_episodes: list[str]
 ) -> tuple[DemoDataset, np.ndarray]:
@@ -108,7 +129,7 @@ def _uncertainty(
 ) -> tuple[np.ndarray, list[str]]:
     cfg = policy.config
     index = ds.sample_index(episodes)
-    obs, _ = ds.windows(index)
+    obs = seen_windows(policy, ds, index)
     centers = current_actions(ds, index[:, 0], index[:, 1])
     estimator = UncertaintyEstimator(config)
     values = []

@@ -5,8 +5,10 @@
 the command that produced the checkpoint. ``calibration.json`` (written by
 ``hitl calibrate``) holds the uncertainty threshold. Nothing is pickled.
 
-``check_fits`` says whether a checkpoint can run a task, and if not, everything that differs: every
-place that loads a policy to run a task calls it.
+``check_fits`` says whether a checkpoint can run a task, and if not, everything that differs (the
+observation layout, the cameras a policy sees against those the task declares, sizes, horizons): every
+place that loads a policy to run a task calls it. A policy that sees cameras records them in its policy
+config (``cameras``: name, rendered size, crop).
 """
 
 from __future__ import annotations
@@ -100,12 +102,22 @@ def check_fits(info: dict, task: str, policy: str | Path = "the policy") -> None
     from sim.registry import make_task  # the simulated tasks only when a task is named
     from sim.spaces import ACTION_DIM
 
-    spec = make_task(task)  # names and specs only: the simulator is not built
+    make_task(task)  # KeyError for a task that is not registered
     try:
         config = DiffusionPolicyConfig.from_dict(info["policy"])
     except (KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f"policy {policy}: bad policy config in {CONFIG}: {exc}") from exc
+    spec = make_task(task, images=bool(config.cameras))  # names and specs only: the simulator is not built
     problems = []
+    declared = {c.name: c for c in spec.cameras}
+    for cam in config.cameras:
+        have = declared.get(cam.name)
+        if have is None:
+            problems.append(
+                f"it sees camera {cam.name!r}, which task {task} lacks (it has {', '.join(declared) or 'none'})"
+            )
+        elif have.size != cam.size:
+            problems.append(f"it sees {cam.name!r} at {cam.size} pixels, task {task} renders {have.size}")
     want, labels = spec.obs_spec.labels(), recorded(info)
     if labels is not None and len(labels) != config.obs_dim:
         problems.append(f"its {CONFIG} records {len(labels)} observation channels for {config.obs_dim}-dim inputs")

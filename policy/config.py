@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 
 from policy.frames import ObjectFrame
+from sim.vision import CameraSpec
 
 NETWORKS = ("unet", "mlp")
 ACTIVATIONS = ("silu", "mish")
@@ -12,11 +13,16 @@ ACTIVATIONS = ("silu", "mish")
 
 @dataclass(frozen=True)
 class DiffusionPolicyConfig:
-    """Low-dimensional conditional diffusion policy.
+    """Conditional diffusion policy on a state vector and, with ``cameras``, on images.
 
     obs_horizon H and action_horizon C default to the paper's simulated tasks
     (1 and 1). ``n_action_steps`` of each predicted chunk are executed before
-    the next prediction (default: the whole chunk).
+    the next prediction (default: the whole chunk). ``obs_dim`` is the state
+    vector's size (the robot's own state for a policy that sees cameras).
+
+    cameras: what the policy sees besides the state (``sim.vision.CameraSpec``: name, rendered size,
+    crop), each through its own encoder (``policy.vision``: ``image_channels`` wide, ``image_keypoints``
+    spatial-softmax keypoints, ``image_features`` out); none: a state-only policy.
     """
 
     obs_dim: int
@@ -41,6 +47,10 @@ class DiffusionPolicyConfig:
     # None: the world frame. Otherwise the network sees observations and predicts actions in the
     # frame of the object's pose on the table (policy/frames.py); inputs and outputs stay world.
     object_frame: ObjectFrame | None = None
+    cameras: tuple[CameraSpec, ...] = ()
+    image_channels: int = 32
+    image_keypoints: int = 32
+    image_features: int = 64
 
     def __post_init__(self) -> None:
         def positive_int(name: str) -> None:
@@ -60,6 +70,9 @@ class DiffusionPolicyConfig:
             "mlp_layers",
             "num_train_steps",
             "num_inference_steps",
+            "image_channels",
+            "image_keypoints",
+            "image_features",
         ):
             positive_int(name)
         if self.n_action_steps is None:
@@ -102,11 +115,30 @@ class DiffusionPolicyConfig:
             if not isinstance(self.object_frame, ObjectFrame):
                 raise ValueError(f"object_frame must be an ObjectFrame, a dict or None, got {self.object_frame!r}")
             self.object_frame.check(self.obs_dim)
+        try:
+            cams = tuple(c if isinstance(c, CameraSpec) else CameraSpec.from_json(c) for c in self.cameras)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"cameras: {exc}") from exc
+        object.__setattr__(self, "cameras", cams)
+        if len({c.name for c in cams}) != len(cams):
+            raise ValueError(f"cameras named twice: {[c.name for c in cams]}")
+        if cams and self.object_frame is not None:
+            raise ValueError("a policy that sees cameras has no object pose for an object frame")
+
+    @property
+    def image_feature_dim(self) -> int:
+        """The width of what the cameras' encoders add to each observation step (0 without cameras)."""
+        return len(self.cameras) * self.image_features
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["down_dims"] = list(self.down_dims)
         d["obs_encoder_dims"] = list(self.obs_encoder_dims)
+        if self.cameras:
+            d["cameras"] = [c.to_json() for c in self.cameras]
+        else:  # state-only configs read as before
+            for name in ("cameras", "image_channels", "image_keypoints", "image_features"):
+                del d[name]
         if self.object_frame is None:
             del d["object_frame"]  # world-frame configs read as before
         else:

@@ -7,7 +7,9 @@ benchmarks) are thin drivers around it, so what we evaluate and benchmark is wha
 Per robot, keyed by robot id, the controller owns:
 
 - the observation history (``obs_horizon`` frames; filled with the first frame of an episode, and
-  again after a hand-back unless ``resume = "history"`` keeps the takeover's frames);
+  again after a hand-back unless ``resume = "history"`` keeps the takeover's frames), with the frames
+  of the cameras a policy that sees them sees (``RobotFrame.images``); the inference back end encodes
+  them once per robot-step (``DiffusionPolicy.encode_observation``), batched across the robots;
 - the action-chunk queue: a chunk is sampled when the queue is empty and its first
   ``n_action_steps`` actions are executed in turn, as in training and evaluation;
 - its seeded sampling noise: each episode's DDIM noise comes from a generator seeded by the
@@ -73,7 +75,9 @@ class RobotStep:
     words for it (``AssistanceSignal.explain``; None for the watchdog); returned: control went back
     to the policy after this step; scores / wants: every signal's score and decision (empty when the
     robot was not scored: waiting, or under teleop without a command); uncertainty: the denoising
-    field when scored; obs: (H, obs_dim) the history the policy saw; current: (10,) the probe centre's
+    field when scored; obs: (H, obs_dim) the state history the policy saw, seen: (H, seen_dim) what it made
+    of it with its cameras' frames (``DiffusionPolicy.encode_observation``; obs itself for a state-only
+    policy); current: (10,) the probe centre's
     raw action; command / target: the operator command applied and what it became; unavailable: why
     nothing was scored (``policy.inference.InferenceUnavailable``: a robot the policy drives held).
     """
@@ -90,6 +94,7 @@ class RobotStep:
     wants: dict[str, bool] = field(default_factory=dict)
     uncertainty: UncertaintyResult | None = None
     obs: np.ndarray | None = None
+    seen: np.ndarray | None = None
     current: np.ndarray | None = None
     command: TeleopCommand | None = None
     target: TeleopTarget | None = None
@@ -102,7 +107,7 @@ class _Robot:
 
     generator: torch.Generator
     control: RobotControl
-    history: deque = field(default_factory=deque)
+    history: deque = field(default_factory=deque)  # (obs, images) per step: the state and each camera's frame
     queue: deque = field(default_factory=deque)
 
 
@@ -223,13 +228,20 @@ class Controller:
         commands = commands or {}
         out: dict[int, RobotStep] = {}
         scored: list[int] = []
+        cameras = [c.name for c in self.policy.config.cameras]
         for rid, frame in frames.items():
             r = self._robot(rid)
             obs = torch.as_tensor(frame.obs, dtype=torch.float32)
+            if lacks := [c for c in cameras if c not in frame.images]:
+                raise ValueError(
+                    f"robot {rid}'s frame has no image of camera(s) {lacks} its policy sees: make its task with "
+                    "images=True (sim.registry.make_task)"
+                )
+            seen = (obs, {c: frame.images[c] for c in cameras})
             if not r.history:
-                r.history.extend([obs] * self.policy.config.obs_horizon)
+                r.history.extend([seen] * self.policy.config.obs_horizon)
             else:
-                r.history.append(obs)
+                r.history.append(seen)
                 while len(r.history) > self.policy.config.obs_horizon:
                     r.history.popleft()
             cmd = commands.get(rid)
@@ -283,7 +295,11 @@ class Controller:
     ) -> None:
         cfg = self.policy.config
         robots = [self._robots[i] for i in ids]
-        obs = torch.stack([torch.stack(list(r.history)) for r in robots])
+        obs = torch.stack([torch.stack([o for o, _ in r.history]) for r in robots])
+        images = {  # camera -> (B, H, size, size, 3) uint8
+            c.name: torch.as_tensor(np.stack([np.stack([im[c.name] for _, im in r.history]) for r in robots]))
+            for c in cfg.cameras
+        }
         current = torch.as_tensor(np.stack([frames[i].hold for i in ids]), dtype=torch.float32)
         controls = [r.control for r in robots]
         teleop = np.array([c.mode == Mode.TELEOP for c in controls])
@@ -319,6 +335,7 @@ class Controller:
             engaged=np.array([c.engaged for c in controls]),
             agreed=np.array([np.nan if c.agreed is None else float(c.agreed) for c in controls]),
             after_takeover=np.array([c.driven for c in controls]),
+            images=images or None,
         )
         try:
             result = self.inference.run(request)
@@ -355,6 +372,7 @@ class Controller:
                     step = RobotStep(rid, r.queue.popleft(), keys.SOURCE_POLICY, c.mode)
             step.mode = c.mode
             step.obs, step.current = obs[j].numpy(), current[j].numpy()
+            step.seen = result.seen[j].numpy() if result.seen is not None else step.obs
             step.scores = {name: float(sc.value[j]) for name, sc in scores.items()}
             step.wants = {name: bool(w[j]) for name, w in wants.items()}
             step.uncertainty = field.robot(j) if field is not None else None

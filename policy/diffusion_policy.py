@@ -4,6 +4,13 @@ and ``noise_prediction`` (the ε_θ the uncertainty metric and several baselines
 Raw observations and actions go in and come out; normalization to [0, 1] per
 dimension happens inside, with the statistics stored as buffers.
 
+With ``config.cameras`` the policy also sees images (``policy.vision``). ``encode_observation`` turns a
+state history and its frames into the *seen* observation, (B, H, obs_dim + image features): the state,
+raw, then what the cameras' encoders made of the frames. It runs once per robot-step; every other
+method takes that seen observation where a state-only policy takes its state, so the denoising steps,
+the paper's probe and every signal reuse one encoding (and repeating an observation per sample repeats
+features, not the encoder).
+
 With ``config.object_frame`` the network works in the object's frame (policy/frames.py): the
 observation and the actions are turned into it before normalization and the predicted actions
 turned back, so every caller still passes and receives world-frame values. ``action_normalizer``
@@ -25,6 +32,7 @@ from policy.config import DiffusionPolicyConfig
 from policy.diffusion import NoiseSchedule
 from policy.networks import ConditionalUnet1D, FilmMLP
 from policy.normalizer import MinMaxNormalizer
+from policy.vision import VisionEncoder
 from storage import keys
 
 
@@ -81,8 +89,14 @@ class DiffusionPolicy(nn.Module):
         self.frame = config.object_frame
         if self.frame is not None:
             self.frame_action_normalizer = MinMaxNormalizer(config.action_dim)
+        self.image_encoder = (
+            VisionEncoder(config.cameras, config.image_channels, config.image_keypoints, config.image_features)
+            if config.cameras
+            else None
+        )
+        self.seen_dim = config.obs_dim + config.image_feature_dim  # one step of what the policy sees
         self.obs_encoder = ObsEncoder(
-            config.obs_dim * config.obs_horizon, config.obs_encoder_dims, config.obs_fourier_octaves
+            self.seen_dim * config.obs_horizon, config.obs_encoder_dims, config.obs_fourier_octaves
         )
         self.net = _build_network(config, self.obs_encoder.out_dim)
         m = config.clip_margin
@@ -137,13 +151,36 @@ class DiffusionPolicy(nn.Module):
         return obs if self.frame is None else self.frame.observation(obs)
 
     def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
-        """(B, H, obs_dim) raw -> the normalized observation the network sees (in its frame)."""
-        return self.obs_normalizer.normalize(self.frame_obs(torch.as_tensor(obs, dtype=torch.float32)))
+        """(B, H, obs_dim) raw -> the normalized observation the network sees (in its frame); for a policy
+        that sees cameras, (B, H, seen_dim) seen (``encode_observation``): the state normalized, the image
+        features as they are."""
+        obs = torch.as_tensor(obs, dtype=torch.float32)
+        d = self.config.obs_dim
+        state = self.obs_normalizer.normalize(self.frame_obs(obs[..., :d]))
+        return torch.cat([state, obs[..., d:]], dim=-1) if self.image_encoder is not None else state
+
+    def encode_observation(
+        self, obs: torch.Tensor, images: dict[str, torch.Tensor] | None, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """What the policy sees: obs (B, H, obs_dim) raw state and images {camera: (B, H, size, size, 3)
+        uint8} -> (B, H, seen_dim), the state and then each camera's features (the input of every other
+        method). A state-only policy returns ``obs``. ``generator``: random crops (training), else centred.
+        Runs on the policy's device, answers on the device of ``obs``."""
+        obs = torch.as_tensor(obs, dtype=torch.float32)
+        if self.image_encoder is None:
+            return obs
+        if images is None:
+            names = [c.name for c in self.config.cameras]
+            raise ValueError(f"the policy sees cameras {names}: pass their frames (a task made with images=True)")
+        features = self.image_encoder(images, generator).to(obs.device)
+        if features.shape[:2] != obs.shape[:2]:
+            raise ValueError(f"{tuple(features.shape[:2])} frames for {tuple(obs.shape[:2])} observation steps")
+        return torch.cat([obs, features], dim=-1)
 
     def widen_obs_range(self, obs: np.ndarray | torch.Tensor) -> int:
         """Widens the observation normalizer to cover ``obs`` (M, H, obs_dim) raw, as the network
         sees it; returns the number of dimensions widened (MinMaxNormalizer.widen)."""
-        obs_t = torch.as_tensor(np.asarray(obs), dtype=torch.float32)
+        obs_t = torch.as_tensor(np.asarray(obs), dtype=torch.float32)[..., : self.config.obs_dim]
         return self.obs_normalizer.widen(self.frame_obs(obs_t.reshape(len(obs_t), -1, obs_t.shape[-1])))
 
     def _to_net_actions(self, actions: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
@@ -169,16 +206,31 @@ class DiffusionPolicy(nn.Module):
         return self.action_normalizer.low.device
 
     def _obs_cond(self, obs: torch.Tensor) -> torch.Tensor:
-        """obs: (B, H, obs_dim) raw -> (B, cond_dim) encoded normalized history (on the policy's device)."""
+        """obs: (B, H, seen_dim) raw (seen: ``encode_observation``) -> (B, cond_dim) encoded normalized
+        history (on the policy's device)."""
         cfg = self.config
-        if obs.dim() != 3 or obs.shape[1:] != (cfg.obs_horizon, cfg.obs_dim):
-            raise ValueError(f"obs must have shape (B, {cfg.obs_horizon}, {cfg.obs_dim}), got {tuple(obs.shape)}")
+        if obs.dim() != 3 or obs.shape[1:] != (cfg.obs_horizon, self.seen_dim):
+            seen = " seen (encode_observation: the state and the cameras' features)" if self.image_encoder else ""
+            raise ValueError(
+                f"obs must have shape (B, {cfg.obs_horizon}, {self.seen_dim}){seen}, got {tuple(obs.shape)}"
+            )
         return self.obs_encoder(self.normalize_obs(obs.to(self.device, torch.float32)).flatten(1))
 
     # -- training ------------------------------------------------------------------
     def compute_loss(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
-        """batch: {OBS: (B, H, obs_dim), ACTION: (B, C, action_dim)} raw. Returns the ε-prediction MSE."""
-        cond = self._obs_cond(batch[keys.OBS])
+        """batch: {OBS: (B, H, obs_dim), ACTION: (B, C, action_dim)} raw, and for a policy that sees
+        cameras each one's frames (``keys.image_key``: (B, H, size, size, 3) uint8, cropped at random in
+        training mode). Returns the ε-prediction MSE."""
+        obs = batch[keys.OBS]
+        if self.image_encoder is not None:
+            images = {
+                c.name: batch[keys.image_key(c.name)] for c in self.config.cameras if keys.image_key(c.name) in batch
+            }
+            crops = generator if self.training and generator is not None else None
+            if self.training and crops is None:
+                crops = torch.Generator().manual_seed(0)
+            obs = self.encode_observation(obs, images, crops)
+        cond = self._obs_cond(obs)
         x0 = self._to_net_actions(batch[keys.ACTION].float(), batch[keys.OBS])
         b = x0.shape[0]
         noise = torch.randn(x0.shape, generator=generator, device=x0.device)
@@ -295,7 +347,8 @@ class DiffusionPolicy(nn.Module):
 
     @torch.no_grad()
     def select_action(self, obs: torch.Tensor) -> torch.Tensor:
-        """obs: (B, obs_dim) raw current observation -> (B, action_dim) raw action to execute now.
+        """obs: (B, obs_dim) raw current observation -> (B, action_dim) raw action to execute now (B, seen_dim
+        seen, ``encode_observation``, for a policy that sees cameras).
 
         Keeps the observation history and the queue of not yet executed actions of the chunk.
         """

@@ -68,7 +68,8 @@ def rollout_policy(
 ) -> tuple[list[PolicyEpisode], dict]:
     """Runs one autonomous episode per seed through the controller; an episode ends at success or
     at the task horizon. ``uncertainty``: score the denoising metric at every step with these
-    settings (the fleet's shadow scoring); ``trace`` keeps every step's observation history, probe
+    settings (the fleet's shadow scoring); ``trace`` keeps every step's observation history (as the policy
+    saw it: ``RobotStep.seen``), probe
     centre and executed action; ``seed``: the controller's sampling seed; ``signals``: scored in the
     shadow at every step (none asks), their scores kept in ``signal_scores``; ``on_step``: told every
     robot's step before it is applied (episode index, task, the decision). Returns (episodes, timing)."""
@@ -85,7 +86,7 @@ def rollout_policy(
             ep.uncertainty.append(step.uncertainty.U)
             ep.modes.append(step.uncertainty.n)
         if trace:
-            ep.trace.append((step.obs, step.current, step.action.astype(np.float32)))
+            ep.trace.append((step.seen, step.current, step.action.astype(np.float32)))
         if shadow and step.scores:
             ep.signal_scores.append({name: step.scores[name] for name in shadow})
         if on_step is not None:

@@ -43,7 +43,8 @@ class InferenceRequest:
     ``noise``, (len(need), action_horizon, 10)); teleop: (B,) under an operator; operator: (B, 10) their
     actions (NaN elsewhere) or None; asking: the signal whose urgent requests and explanations are
     wanted (None: no robot may ask this step); engaged / agreed / after_takeover: each robot's takeover
-    facts from its control state (``TriggerState``)."""
+    facts from its control state (``TriggerState``); images: for a policy that sees cameras, each camera's
+    frames of the histories, {camera: (B, obs_horizon, size, size, 3) uint8}, encoded where the policy runs."""
 
     obs: torch.Tensor
     current: torch.Tensor
@@ -57,6 +58,7 @@ class InferenceRequest:
     engaged: np.ndarray | None = None
     agreed: np.ndarray | None = None
     after_takeover: np.ndarray | None = None
+    images: dict[str, torch.Tensor] | None = None
 
     def trigger_state(self) -> TriggerState:
         return TriggerState(
@@ -73,7 +75,9 @@ class InferenceResult:
     """plans: the request's, with the fresh chunks; scores: every signal's; wants: every calibrated
     signal's decision (B,); urgent: the asking signal's urgent requests (B,) or None; why: row -> the
     asking signal's explanation, for the rows not under teleop where it wants help (those that may ask);
-    cpu_s: the CPU time (of the computing thread) the policy's chunks and each signal took in this call."""
+    cpu_s: the CPU time (of the computing thread) the policy's chunks and each signal took in this call
+    ("encode": the cameras' encoders); seen: (B, obs_horizon, seen_dim) what the policy made of the
+    observations with its cameras (``DiffusionPolicy.encode_observation``), None for a state-only policy."""
 
     plans: torch.Tensor
     scores: dict[str, Scores]
@@ -81,6 +85,7 @@ class InferenceResult:
     urgent: np.ndarray | None
     why: dict[int, str | None]
     cpu_s: dict[str, float] = field(default_factory=dict)  # CPU seconds of this call: "policy", each signal
+    seen: torch.Tensor | None = None
 
 
 class Inference(ABC):
@@ -108,10 +113,15 @@ def compute(policy: DiffusionPolicy, signals: Mapping[str, AssistanceSignal], re
         clock = now
 
     with torch.no_grad():
+        seen = None
+        if policy.config.cameras:  # once per robot-step: the chunks, the probes and every signal reuse it
+            seen = policy.encode_observation(req.obs, req.images).cpu()
+            spent("encode")
+        obs = req.obs if seen is None else seen
         if req.need:
-            plans[req.need] = policy.predict_action_chunk(req.obs[req.need], noise=req.noise).float().cpu()
+            plans[req.need] = policy.predict_action_chunk(obs[req.need], noise=req.noise).float().cpu()
         spent("policy")
-        batch = SignalInput(req.obs, req.current, req.robot_ids, action=plans, operator_action=req.operator)
+        batch = SignalInput(obs, req.current, req.robot_ids, action=plans, operator_action=req.operator)
         scores = {}
         for name, s in signals.items():
             scores[name] = s.score(batch)
@@ -131,7 +141,7 @@ def compute(policy: DiffusionPolicy, signals: Mapping[str, AssistanceSignal], re
         asks = np.flatnonzero(wants[req.asking] & ~state.teleop)  # only a robot the policy drives asks
         why = {int(j): explain(scores[req.asking], int(j)) if explain else None for j in asks}
         spent(req.asking)
-    return InferenceResult(plans, scores, wants, urgent, why, cpu)
+    return InferenceResult(plans, scores, wants, urgent, why, cpu, seen)
 
 
 class LocalInference(Inference):

@@ -72,7 +72,8 @@ def run_lockstep(
     control steps."""
     if n_envs < 1:
         raise ValueError(f"n_envs must be >= 1, got {n_envs}")
-    tasks = [make_task(task_name) for _ in range(min(n_envs, len(seeds)))]
+    sees = bool(controller.policy.config.cameras)  # a policy that sees cameras runs the task as it observes it
+    tasks = [make_task(task_name, images=sees) for _ in range(min(n_envs, len(seeds)))]
     obs_dim = tasks[0].obs_spec.dim
     if obs_dim != controller.policy.config.obs_dim:
         raise ValueError(

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from policy.calibrate import CalibrationError, current_actions
+from policy.calibrate import CalibrationError, current_actions, seen_windows
 from policy.checkpoint import WEIGHTS
 from policy.diffusion_policy import DiffusionPolicy
 from policy.evaluate import PolicyEpisode, rollout_policy
@@ -19,9 +19,11 @@ from storage.dataset import DatasetConfig, DemoDataset, load_dataset
 ROLLOUT_DIR = "rollouts"
 
 
-def _demo_steps(ds: DemoDataset, episodes: np.ndarray) -> StepSet:
+def _demo_steps(policy: DiffusionPolicy, ds: DemoDataset, episodes: np.ndarray) -> StepSet:
+    """The steps of ``episodes``, observed as the policy sees them (``seen_windows``)."""
     index = ds.sample_index(episodes)
-    obs, act = ds.windows(index)
+    _, act = ds.windows(index)
+    obs = seen_windows(policy, ds, index)
     starts = ds.episode_starts
     ep_of_row = np.searchsorted(ds.episode_ends, index[:, 0], side="right")
     return StepSet(
@@ -51,7 +53,7 @@ def demo_data(policy: DiffusionPolicy, info: dict, folder: str | Path) -> Calibr
             f"{folder} holds {len(train)} of the policy's training and {len(val)} of its validation episodes: "
             "use the folder the policy was trained from"
         )
-    return CalibrationData(train=_demo_steps(ds, train), val=_demo_steps(ds, val))
+    return CalibrationData(train=_demo_steps(policy, ds, train), val=_demo_steps(policy, ds, val))
 
 
 def episodes_to_steps(episodes: list[PolicyEpisode]) -> StepSet:

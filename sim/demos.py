@@ -36,6 +36,7 @@ class DemoRecipe:
     seed: int = 0
     pos_noise: float = 0.0
     rot_noise: float = 0.0
+    images: bool = False  # as a policy that sees cameras observes (``make_task(..., images=True)``): frames recorded
 
     def __post_init__(self) -> None:
         if not (isinstance(self.task, str) and self.task):
@@ -48,12 +49,14 @@ class DemoRecipe:
             v = getattr(self, name)
             if not (isinstance(v, int | float) and not isinstance(v, bool) and v >= 0):
                 raise ValueError(f"recipe: {name} must be a number >= 0, got {v!r}")
+        if not isinstance(self.images, bool):
+            raise ValueError(f"recipe: images must be true or false, got {self.images!r}")
 
     @classmethod
     def from_dict(cls, d: dict) -> DemoRecipe:
         if not isinstance(d, dict):
             raise ValueError(f"recipe: expected an object, got {type(d).__name__}")
-        unknown = set(d) - {"task", "episodes", "seed", "pos_noise", "rot_noise", "command"}
+        unknown = set(d) - {"task", "episodes", "seed", "pos_noise", "rot_noise", "images", "command"}
         if unknown:
             raise ValueError(f"recipe: unknown fields {sorted(unknown)}")
         try:
@@ -71,7 +74,8 @@ class DemoRecipe:
     def command(self, out: str) -> str:
         """The ``hitl demos`` command line that records this recipe into ``out``."""
         noise = f" --pos-noise {self.pos_noise:g} --rot-noise {self.rot_noise:g}" if self.noise else ""
-        return f"hitl demos --task {self.task} --episodes {self.episodes} --seed {self.seed}{noise} --out {out}"
+        images = " --images" if self.images else ""
+        return f"hitl demos --task {self.task} --episodes {self.episodes} --seed {self.seed}{noise}{images} --out {out}"
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -128,7 +132,9 @@ def ensure_demos(recipe: DemoRecipe, folder: str | Path, progress: bool = True, 
 def _record_run(job: tuple[DemoRecipe, Path, tuple[int, int], bool]) -> None:
     """One run of consecutive seeds (first, count) of ``recipe`` into ``staging``: a process's share."""
     recipe, staging, (lo, n), progress = job
-    record_demos(recipe.task, n, staging, seed=lo, progress=progress, noise=recipe.noise, recipe=False)
+    record_demos(
+        recipe.task, n, staging, seed=lo, progress=progress, noise=recipe.noise, recipe=False, images=recipe.images
+    )
 
 
 def _runs(seeds: list[int]) -> list[tuple[int, int]]:
@@ -155,19 +161,23 @@ def record_demos(
     progress: bool = True,
     noise: ExecutionNoise | None = None,
     recipe: bool = True,
+    images: bool = False,
 ) -> tuple[list[Path], int]:
     """Writes ``episodes`` expert episodes (seeds ``seed .. seed + episodes - 1``), one MCAP file each.
 
     ``noise`` perturbs the executed actions (DART); the files hold the expert's clean actions. With
     ``recipe``, the folder's ``recipe.json`` records how to record it again (``DemoRecipe``); a folder
-    that already holds other episodes keeps no recipe, since no single one made it.
+    that already holds other episodes keeps no recipe, since no single one made it. ``images``: the
+    task observes as a policy that sees cameras does (``make_task(..., images=True)``): the observation
+    is the robot's own state and every step carries its cameras' frames.
     Returns the files and how many episodes succeeded.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     out = Path(out)
     others = list(out.glob(keys.EPISODE_GLOB)) if out.is_dir() else []
-    task, expert = make_task(task_name), make_expert(task_name)
+    task, expert = make_task(task_name, images=images), make_expert(task_name)
+    cameras = [c.to_json() for c in task.cameras] if images else []
     paths: list[Path] = []
     bar = tqdm(range(seed, seed + episodes), desc=f"demos {task_name}", unit="ep", disable=not progress)
     successes = 0
@@ -183,11 +193,20 @@ def record_demos(
                 "source": keys.SOURCE_EXPERT,
                 "execution_noise": {"pos": noise.pos, "rot": noise.rot} if noise else None,
             }
-            with EpisodeWriter(path, meta, object_names=list(task.object_poses())) as writer:
+            with EpisodeWriter(path, meta, object_names=list(task.object_poses()), cameras=cameras) as writer:
 
                 def on_step(r: StepRecord, w: EpisodeWriter = writer) -> None:
                     w.write_step(
-                        r.t, r.obs, r.action, r.ee_pos, r.ee_quat, r.gripper, r.success, keys.SOURCE_EXPERT, r.objects
+                        r.t,
+                        r.obs,
+                        r.action,
+                        r.ee_pos,
+                        r.ee_quat,
+                        r.gripper,
+                        r.success,
+                        keys.SOURCE_EXPERT,
+                        r.objects,
+                        images=r.images,
                     )
 
                 result = run_expert_episode(task, expert, s, on_step, noise)
@@ -198,7 +217,7 @@ def record_demos(
     finally:
         task.close()
     if recipe:
-        made = DemoRecipe(task_name, episodes, seed, noise.pos if noise else 0.0, noise.rot if noise else 0.0)
+        made = DemoRecipe(task_name, episodes, seed, noise.pos if noise else 0.0, noise.rot if noise else 0.0, images)
         ours = set(made.files(out))
         if any(p not in ours for p in others):
             (out / RECIPE_FILE).unlink(missing_ok=True)

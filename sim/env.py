@@ -25,6 +25,10 @@ TABLE_FULL_SIZE = (0.8, 0.8, 0.05)
 CONTROL_FREQ = 20
 EE_FRAME = "ee"
 
+# what a policy that sees cameras observes besides them: the robot's own state, as the paper's policies
+# (``Task.sees_cameras``): no object pose, bounding box, ray or visibility flag
+ROBOT_OBS_PARTS = (("eef_pos", 3), ("eef_rot6d", 6), ("gripper_qpos", 2))
+
 # Robot joint noise at reset (radians, gaussian), seeded per episode; a task may set its own
 # (``Task.init_joint_noise``).
 INIT_JOINT_NOISE = 0.02
@@ -79,6 +83,9 @@ class ObsSpec:
             out[name] = slice(i, i + n)
             i += n
         return out
+
+
+ROBOT_OBS = ObsSpec(ROBOT_OBS_PARTS)
 
 
 @dataclass(frozen=True)
@@ -161,8 +168,13 @@ class Task(ABC):
     """One simulated robot doing one task.
 
     Subclasses define the scene (``build_objects``), the seeded placement
-    (``place``), the observation (``observe``), ``check_success`` and the
+    (``place``), the state-based observation (``observe``), ``check_success`` and the
     privileged state the scripted expert may read (``privileged``).
+
+    A task built for a policy that sees (``sim.registry.make_task(name, images=True)``: ``sees_cameras``)
+    observes as the paper's policies do: its frames carry its cameras' images and its observation vector
+    (``observation``, ``obs_spec``) is the robot's own state (``ROBOT_OBS``); the state-based one stays
+    ``type(task).obs_spec`` for experts, the oracle and tests.
     """
 
     name: str
@@ -196,7 +208,22 @@ class Task(ABC):
 
     @abstractmethod
     def observe(self) -> np.ndarray:
-        """The observation vector (obs_spec.dim,), float64."""
+        """The state-based observation vector (``type(self).obs_spec.dim``,), float64."""
+
+    @property
+    def sees_cameras(self) -> bool:
+        """The task observes as a policy that sees cameras does: images and the robot's own state."""
+        return self.with_images
+
+    def see_cameras(self) -> None:
+        """From now on the task observes as a policy that sees cameras does (``sees_cameras``)."""
+        self.with_images = True
+        self.obs_spec = ROBOT_OBS
+
+    def observation(self) -> np.ndarray:
+        """What the policy observes now (``obs_spec.dim``,): ``observe`` for a state-based policy, the
+        robot's own state (``robot_obs``) for one that sees cameras."""
+        return self.robot_obs() if self.sees_cameras else self.observe()
 
     @abstractmethod
     def check_success(self) -> bool: ...
@@ -262,7 +289,7 @@ class Task(ABC):
         self._t = 0
         self._clock = 0
         self._gripper = -1.0
-        return self.observe()
+        return self.observation()
 
     def step(self, action: np.ndarray, hold: bool = False) -> StepResult:
         """Applies an absolute action (10,) for one control step (1 / CONTROL_FREQ s).
@@ -278,7 +305,7 @@ class Task(ABC):
         self._clock += 0 if hold else 1
         self.on_step()
         success = self.check_success()
-        return StepResult(self.observe(), success, success or self._clock >= self.horizon, self._t, self._clock)
+        return StepResult(self.observation(), success, success or self._clock >= self.horizon, self._t, self._clock)
 
     def teleop(self, command: TeleopCommand) -> TeleopTarget:
         """Converts an operator command into an absolute action from the current pose."""

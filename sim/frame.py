@@ -63,7 +63,7 @@ class RobotFrame:
         pos, rot = task.ee_pose()
         done = bool(result.done) if result is not None else False
         return cls(
-            obs=(task.observe() if result is None else result.obs).astype(np.float32),
+            obs=(task.observation() if result is None else result.obs).astype(np.float32),
             hold=task.hold_action().astype(np.float64),
             pos=pos,
             rot=rot,

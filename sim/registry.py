@@ -35,10 +35,12 @@ def _check(name: str) -> None:
 
 
 def make_task(name: str, images: bool = False) -> Task:
-    """The task ``name``; ``images``: its frames carry what its policy's cameras see (``Task.cameras``)."""
+    """The task ``name``; ``images``: as a policy that sees cameras observes it (``Task.see_cameras``): its
+    frames carry what its cameras see (``Task.cameras``) and its observation is the robot's own state."""
     _check(name)
     task = TASKS[name]()
-    task.with_images = images
+    if images:
+        task.see_cameras()
     return task
 
 

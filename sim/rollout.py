@@ -25,6 +25,9 @@ class StepRecord:
     gripper: float  # finger gap (m)
     success: bool  # after the step
     objects: dict[str, tuple[np.ndarray, np.ndarray]]
+    images: dict[str, np.ndarray] | None = (
+        None  # what the policy's cameras saw before the action (``Task.with_images``)
+    )
 
 
 @dataclass(frozen=True)
@@ -75,11 +78,16 @@ def run_expert_episode(
         pos, rot = task.ee_pose()
         objects = task.object_poses()
         gap = task.gripper_opening()
+        images = task.images() if task.with_images else None
         action = task.teleop(expert.act(task)).action
         executed = noise.apply(action, noise_rng) if noise is not None else action
         result = task.step(executed)
         if on_step is not None:
-            on_step(StepRecord(t, obs, action, pos, Rotation.from_matrix(rot).as_quat(), gap, result.success, objects))
+            on_step(
+                StepRecord(
+                    t, obs, action, pos, Rotation.from_matrix(rot).as_quat(), gap, result.success, objects, images
+                )
+            )
         obs, success, t = result.obs, result.success, result.t
         if result.done:
             break

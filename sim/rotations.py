@@ -20,12 +20,21 @@ def mat_to_rot6d(mat: np.ndarray) -> np.ndarray:
 
 
 def rot6d_to_mat(rot6d: np.ndarray) -> np.ndarray:
-    """(..., 6) -> (..., 3, 3) by Gram-Schmidt; tolerant to unnormalised input."""
+    """(..., 6) -> (..., 3, 3) by Gram-Schmidt; tolerant to unnormalised input, and to degenerate input
+    (a zero first column becomes x; a second column parallel to the first, or zero, is replaced by a
+    direction perpendicular to it), so every 6D vector gives a rotation."""
     rot6d = np.asarray(rot6d, dtype=np.float64)
     a1, a2 = rot6d[..., 0:3], rot6d[..., 3:6]
-    b1 = a1 / np.clip(np.linalg.norm(a1, axis=-1, keepdims=True), 1e-9, None)
+    n1 = np.linalg.norm(a1, axis=-1, keepdims=True)
+    b1 = np.where(n1 > 1e-9, a1 / np.clip(n1, 1e-9, None), np.array([1.0, 0.0, 0.0]))
     a2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
-    b2 = a2 / np.clip(np.linalg.norm(a2, axis=-1, keepdims=True), 1e-9, None)
+    n2 = np.linalg.norm(a2, axis=-1, keepdims=True)
+    if np.any(n2 <= 1e-9):  # the axis least aligned with b1, made perpendicular to it
+        axis = np.eye(3)[np.argmin(np.abs(b1), axis=-1)]
+        other = axis - np.sum(b1 * axis, axis=-1, keepdims=True) * b1
+        a2 = np.where(n2 > 1e-9, a2, other)
+        n2 = np.linalg.norm(a2, axis=-1, keepdims=True)
+    b2 = a2 / np.clip(n2, 1e-9, None)
     b3 = np.cross(b1, b2)
     return np.stack([b1, b2, b3], axis=-1)
 

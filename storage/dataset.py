@@ -8,7 +8,10 @@ episode spanning rows ``[s, e)`` is one sample with
 
 The validation split is by episode, chosen with a seeded shuffle. A decoded
 copy is cached under ``<folder>/.cache/`` keyed by the files' names, sizes and
-modification times, so the second load skips MCAP decoding.
+modification times, so the second load skips MCAP decoding. Episodes recorded
+for a policy that sees cameras carry their frames (``storage.episodes``): they
+are decoded from PNG once, into one ``.npy`` per camera in the cache, which
+later loads map from disk instead of decoding again (``DemoDataset.images``).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -61,7 +64,9 @@ class DemoDataset:
     """All steps of all episodes, concatenated.
 
     obs: (N, obs_dim) float32; actions: (N, 10) float32; episode_ends: (E,)
-    exclusive end row of each episode; names: (E,) file names; meta: per episode.
+    exclusive end row of each episode; names: (E,) file names; meta: per episode;
+    images: camera -> (N, size, size, 3) uint8, what it saw at each row (empty for
+    state-only episodes); cameras: their specs as recorded (name, size, crop).
     """
 
     folder: Path
@@ -74,6 +79,8 @@ class DemoDataset:
     meta: list[dict]
     excluded: dict[str, str]
     from_cache: bool = False
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+    cameras: list[dict] = field(default_factory=list)
 
     @property
     def episode_starts(self) -> np.ndarray:
@@ -115,12 +122,21 @@ class DemoDataset:
         act_rows = np.clip(t + np.arange(c), None, end - 1)
         return self.obs[obs_rows], self.actions[act_rows]
 
+    def image_windows(self, index: np.ndarray) -> dict[str, np.ndarray]:
+        """{``keys.image_key(camera)``: (M, H, size, size, 3) uint8} for each camera: the frames of the
+        observation histories ``windows`` gathers (empty for state-only data)."""
+        t, start = index[:, 0:1], index[:, 1:2]
+        rows = np.clip(t + np.arange(-self.config.obs_horizon + 1, 1), start, None)
+        return {keys.image_key(name): np.asarray(frames[rows]) for name, frames in self.images.items()}
+
     def arrays(self, split: str = "train") -> dict[str, np.ndarray]:
-        """{OBS: (M, H, obs_dim), ACTION: (M, C, 10)} for ``split`` in {"train", "val", "all"}."""
+        """{OBS: (M, H, obs_dim), ACTION: (M, C, 10)} and each camera's frames (``image_windows``) for
+        ``split`` in {"train", "val", "all"}."""
         train, val = self.split()
         episodes = {"train": train, "val": val, "all": np.arange(self.num_episodes)}[split]
-        obs, act = self.windows(self.sample_index(episodes))
-        return {keys.OBS: obs, keys.ACTION: act}
+        index = self.sample_index(episodes)
+        obs, act = self.windows(index)
+        return {keys.OBS: obs, keys.ACTION: act, **self.image_windows(index)}
 
 
 def _fingerprint(files: list[Path], config: DatasetConfig) -> str:
@@ -182,6 +198,18 @@ def load_dataset(folder: str | Path, config: DatasetConfig | None = None) -> Dem
         raise DatasetError(
             folder, {ep.path.name: f"obs/action dims {ep.obs.shape[1]}/{ep.actions.shape[1]}" for ep in episodes}
         )
+    cameras = _cameras(folder, episodes)
+    images = {}
+    for cam in cameras:
+        frames, bad = [], {}
+        for ep in episodes:
+            try:
+                frames.append(ep.frames(cam["name"]))
+            except EpisodeReadError as exc:
+                bad[ep.path.name] = exc.reason
+        if bad:
+            raise DatasetError(folder, bad)
+        images[cam["name"]] = np.concatenate(frames)
     ds = DemoDataset(
         folder=folder,
         config=config,
@@ -192,16 +220,36 @@ def load_dataset(folder: str | Path, config: DatasetConfig | None = None) -> Dem
         names=[ep.path.name for ep in episodes],
         meta=[ep.meta | {"recovered": ep.recovered} for ep in episodes],
         excluded=excluded,
+        images=images,
+        cameras=cameras,
     )
     if config.cache:
         _to_cache(ds, cache_file)
     return ds
 
 
+def _cameras(folder: Path, episodes: list) -> list[dict]:
+    """The cameras every episode recorded, the same in each (DatasetError naming those that differ)."""
+    first = episodes[0].cameras
+    other = {
+        ep.path.name: f"recorded cameras {ep.cameras}, not {first} like {episodes[0].path.name}"
+        for ep in episodes
+        if ep.cameras != first
+    }
+    if other:
+        raise DatasetError(folder, other)
+    return first
+
+
 def _to_cache(ds: DemoDataset, cache_file: Path) -> None:
     cache_file.parent.mkdir(exist_ok=True)
-    for old in cache_file.parent.glob("decoded-*.npz"):
+    for old in cache_file.parent.glob("decoded-*"):
         old.unlink(missing_ok=True)
+    for name, frames in ds.images.items():  # before the index file: a cache without its frames is not found
+        part = _frames_file(cache_file, name)
+        tmp = part.with_suffix(".tmp.npy")
+        np.save(tmp, frames)
+        tmp.replace(part)
     tmp = cache_file.with_suffix(".tmp.npz")
     np.savez(
         tmp,
@@ -209,7 +257,7 @@ def _to_cache(ds: DemoDataset, cache_file: Path) -> None:
         actions=ds.actions,
         ee_pose=ds.ee_pose,
         episode_ends=ds.episode_ends,
-        info=np.array(json.dumps({"names": ds.names, "meta": ds.meta, "excluded": ds.excluded})),
+        info=np.array(json.dumps({"names": ds.names, "meta": ds.meta, "excluded": ds.excluded, "cameras": ds.cameras})),
     )
     tmp.replace(cache_file)
 
@@ -217,6 +265,12 @@ def _to_cache(ds: DemoDataset, cache_file: Path) -> None:
 def _from_cache(folder: Path, config: DatasetConfig, cache_file: Path) -> DemoDataset:
     with np.load(cache_file, allow_pickle=False) as z:
         info = json.loads(str(z["info"]))
+        cameras = info.get("cameras", [])
+        images = {}
+        for cam in cameras:  # mapped, not read: a training run touches the rows it samples
+            images[cam["name"]] = np.load(_frames_file(cache_file, cam["name"]), mmap_mode="r", allow_pickle=False)
+            if len(images[cam["name"]]) != len(z["obs"]):
+                raise ValueError(f"cached frames of {cam['name']} do not match the cached steps")
         return DemoDataset(
             folder=folder,
             config=config,
@@ -228,4 +282,10 @@ def _from_cache(folder: Path, config: DatasetConfig, cache_file: Path) -> DemoDa
             meta=info["meta"],
             excluded=info["excluded"],
             from_cache=True,
+            images=images,
+            cameras=cameras,
         )
+
+
+def _frames_file(cache_file: Path, camera: str) -> Path:
+    return cache_file.with_name(f"{cache_file.stem}.{camera}.npy")

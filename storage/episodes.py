@@ -6,7 +6,11 @@ Two families of channel:
   end-effector pose, gripper, success, source; one per control step) and
   ``/outcome`` (last);
 - 3D playback for Foxglove: ``/tf`` (``foxglove.FrameTransform``) and
-  ``/poses/...`` (``foxglove.PoseInFrame``) for the end effector and objects.
+  ``/poses/...`` (``foxglove.PoseInFrame``) for the end effector and objects;
+- for a policy that sees cameras, ``/observation/images/<camera>``: what each of its cameras saw
+  before each step's action (``foxglove.CompressedImage``, PNG: lossless, so a policy trained on the
+  file sees what the robot saw; ``storage.images``), at the step's time. The cameras and their sizes
+  are in the metadata (``keys.CAMERAS``).
 
 Vectors are stored as JSON float64, which round-trips exactly. The writer
 closes a chunk and flushes the file every ``flush_every`` steps, so a file cut
@@ -25,6 +29,7 @@ import numpy as np
 from mcap.exceptions import McapError
 
 from storage import keys
+from storage.images import COMPRESSED_IMAGE_SCHEMA, ImageDecodeError, check_frame, decode_png, png_message
 from storage.mcap_io import JsonMcapWriter, read_all, rebuild, salvage, stamp
 
 _VEC = {"type": "array", "items": {"type": "number"}}
@@ -78,6 +83,7 @@ SCHEMAS: dict[str, dict] = {
         "properties": {"success": {"type": "boolean"}, "steps": {"type": "integer"}, "reason": {"type": "string"}},
     },
     # Foxglove well-known schemas (JSON encoding).
+    keys.SCHEMA_COMPRESSED_IMAGE: COMPRESSED_IMAGE_SCHEMA,
     keys.SCHEMA_FRAME_TRANSFORM: {
         "title": "foxglove.FrameTransform",
         "type": "object",
@@ -130,11 +136,35 @@ class Episode:
     sources: list[str]
     outcome: dict | None  # None when the file was recovered from a truncation
     extras: list[dict] = field(default_factory=list)  # per step: the ``keys.STEP_EXTRAS`` it carries
+    # camera -> its frames' foxglove.CompressedImage messages, one per step in order (``frames`` decodes them)
+    images: dict[str, list[dict]] = field(default_factory=dict)
     recovered: bool = False
     playback_messages: int = 0
 
     def __len__(self) -> int:
         return len(self.actions)
+
+    @property
+    def cameras(self) -> list[dict]:
+        """The policy cameras the episode recorded (``keys.CAMERAS``: name, size, crop), in order."""
+        return list(self.meta.get(keys.CAMERAS) or [])
+
+    def frames(self, camera: str) -> np.ndarray:
+        """(T, size, size, 3) uint8: what ``camera`` saw at each step. EpisodeReadError when the episode
+        lacks a frame of a step, or one is not a PNG of the recorded size."""
+        spec = next((c for c in self.cameras if c.get("name") == camera), None)
+        if spec is None:
+            raise EpisodeReadError(
+                self.path, f"no camera {camera!r}; it recorded {[c.get('name') for c in self.cameras]}"
+            )
+        messages = self.images.get(camera, [])
+        if len(messages) != len(self):
+            raise EpisodeReadError(self.path, f"camera {camera!r}: {len(messages)} frames for {len(self)} steps")
+        size = (int(spec["size"]), int(spec["size"]))
+        try:
+            return np.stack([decode_png(m, size) for m in messages]) if messages else np.zeros((0, *size, 3), np.uint8)
+        except ImageDecodeError as exc:
+            raise EpisodeReadError(self.path, f"camera {camera!r}: {exc}") from exc
 
 
 def _xyz(v) -> dict:
@@ -153,6 +183,8 @@ class EpisodeWriter:
         meta: episode metadata (task, seed, expert, object, ...), JSON-serialisable.
         object_names: the objects whose poses are streamed for playback.
         flush_every: close a chunk and flush the file every this many steps.
+        cameras: the policy cameras whose frames every step carries (``CameraSpec.to_json`` dicts: name,
+            size, crop); recorded in the metadata under ``keys.CAMERAS``.
     """
 
     def __init__(
@@ -162,9 +194,13 @@ class EpisodeWriter:
         object_names: list[str] | tuple[str, ...] = (),
         flush_every: int = 20,
         start_time_ns: int | None = None,
+        cameras: list[dict] | tuple[dict, ...] = (),
     ) -> None:
         if flush_every < 1:
             raise ValueError(f"flush_every must be >= 1, got {flush_every}")
+        self._sizes = {str(c["name"]): int(c["size"]) for c in cameras}
+        if len(self._sizes) != len(cameras):
+            raise ValueError(f"cameras named twice: {[c['name'] for c in cameras]}")
         self.path = Path(path)
         self._mcap = JsonMcapWriter(self.path, SCHEMAS, chunk_size=256 * 1024)
         self._flush_every = flush_every
@@ -179,7 +215,11 @@ class EpisodeWriter:
         self._ch_objects = {
             name: channel(keys.TOPIC_OBJECT_POSE.format(name=name), keys.SCHEMA_POSE_IN_FRAME) for name in object_names
         }
-        self.meta = dict(meta)
+        self._ch_images = {
+            name: channel(keys.TOPIC_POLICY_IMAGE.format(name=name), keys.SCHEMA_COMPRESSED_IMAGE)
+            for name in self._sizes
+        }
+        self.meta = dict(meta) | ({keys.CAMERAS: [dict(c) for c in cameras]} if cameras else {})
         self._mcap.add_metadata("episode", self.meta)
         self._add(self._ch_episode, self._t0, self.meta)
         self._mcap.flush()
@@ -199,10 +239,21 @@ class EpisodeWriter:
         source: str = keys.SOURCE_EXPERT,
         objects: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
         extras: dict | None = None,
+        images: dict[str, np.ndarray] | None = None,
     ) -> None:
         """One control step: the observation before the action, and the action taken. ``extras``: the
         optional ``keys.STEP_EXTRAS`` the fleet knows (asking score and threshold, the paper's U, policy
-        version, operator command, takeover id); other keys are refused."""
+        version, operator command, takeover id); other keys are refused. ``images``: camera -> (size,
+        size, 3) uint8, what each declared camera saw before the action (every one, every step)."""
+        images = images or {}
+        if set(images) != set(self._sizes):
+            raise ValueError(
+                f"step {t}: frames of cameras {sorted(images)}, the episode declared {sorted(self._sizes)}"
+            )
+        for name, image in images.items():
+            size = self._sizes[name]
+            if check_frame(image, name).shape[:2] != (size, size):
+                raise ValueError(f"step {t}: camera {name!r} frame is {np.shape(image)}, declared {size}x{size}")
         extras = {k: v for k, v in (extras or {}).items() if v is not None}
         if unknown := set(extras) - set(keys.STEP_EXTRAS):
             raise ValueError(f"unknown step fields {sorted(unknown)}; known: {keys.STEP_EXTRAS}")
@@ -228,6 +279,8 @@ class EpisodeWriter:
             }
             | extras,
         )
+        for name, image in images.items():
+            self._add(self._ch_images[name], ns, png_message(image, name, ns))
         self._add_frame(ns, keys.EE_FRAME, ee_pos, ee_quat)
         self._add(self._ch_ee, ns, {"timestamp": stamp(ns), "frame_id": keys.WORLD_FRAME, "pose": pose})
         for name, (pos, quat) in (objects or {}).items():
@@ -284,8 +337,21 @@ def _decode(path: Path, messages) -> Episode:
     meta: dict | None = None
     outcome: dict | None = None
     steps: list[dict] = []
+    frames: dict[str, list[tuple[int, dict]]] = {}
+    t0: int | None = None
     playback = 0
+    image_topic = keys.TOPIC_POLICY_IMAGE.format(name="")
     for _schema, channel, message in messages:
+        if channel.topic.startswith(image_topic):
+            try:
+                frames.setdefault(channel.topic[len(image_topic) :], []).append(
+                    (message.log_time, json.loads(message.data))
+                )
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise EpisodeReadError(path, f"corrupt message on {channel.topic}: {exc}") from exc
+            continue
+        if channel.topic == keys.TOPIC_EPISODE:
+            t0 = message.log_time
         if channel.topic in (keys.TOPIC_STEP, keys.TOPIC_EPISODE, keys.TOPIC_OUTCOME):
             try:
                 payload = json.loads(message.data)
@@ -327,8 +393,25 @@ def _decode(path: Path, messages) -> Episode:
         sources=[s[keys.STEP_SOURCE] for s in steps],
         outcome=outcome,
         extras=[{k: s[k] for k in keys.STEP_EXTRAS if k in s} for s in steps],
+        images=_frames_by_step(path, frames, t0, [s[keys.STEP_T] for s in steps]),
         playback_messages=playback,
     )
+
+
+def _frames_by_step(path: Path, frames: dict[str, list[tuple[int, dict]]], t0: int | None, ts: list[int]):
+    """camera -> its messages in step order, each matched to its step by time (a step at ``t`` is logged at
+    the episode's start plus ``t`` control periods); frames of steps the file lacks (cut off) are dropped."""
+    out: dict[str, list[dict]] = {}
+    wanted = set(ts)
+    for camera, messages in frames.items():
+        by_t = {}
+        for ns, m in messages:
+            t = (ns - (t0 or 0)) // CONTROL_PERIOD_NS
+            if t in by_t:
+                raise EpisodeReadError(path, f"camera {camera!r}: two frames at step {t}")
+            by_t[t] = m
+        out[camera] = [by_t[t] for t in ts if t in by_t and t in wanted]
+    return out
 
 
 _TRUNCATED_HINT = (

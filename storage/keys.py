@@ -9,6 +9,15 @@ from __future__ import annotations
 # -- batch / array keys -------------------------------------------------------
 OBS = "obs"  # (..., obs_horizon, obs_dim)
 ACTION = "action"  # (..., action_horizon, 10) absolute end-effector pose + gripper
+IMAGE_PREFIX = (
+    "observation.images."  # + camera name: (..., obs_horizon, size, size, 3) uint8 RGB, as LeRobot names them
+)
+
+
+def image_key(camera: str) -> str:
+    """The batch key of one policy camera's frames (LeRobot's ``observation.images.<camera>``)."""
+    return IMAGE_PREFIX + camera
+
 
 # -- step messages: the fields one control step has in every MCAP file (/step, /takeover/step) --
 STEP_T = "t"  # step index within the episode / takeover
@@ -45,6 +54,9 @@ TOPIC_OUTCOME = "/outcome"  # once, last: success, steps, reason
 TOPIC_TF = "/tf"  # foxglove.FrameTransform, world -> ee and world -> each object
 TOPIC_EE_POSE = "/poses/ee"  # foxglove.PoseInFrame
 TOPIC_OBJECT_POSE = "/poses/objects/{name}"  # foxglove.PoseInFrame per object
+# every control step, per policy camera: foxglove.CompressedImage (PNG, lossless) of what the policy saw
+TOPIC_POLICY_IMAGE = "/observation/images/{name}"
+CAMERAS = "cameras"  # in episode and segment metadata and a policy's config.json: [CameraSpec.to_json(), ...]
 
 SCHEMA_EPISODE = "hitl.Episode"
 SCHEMA_STEP = "hitl.Step"

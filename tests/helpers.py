@@ -168,6 +168,9 @@ class KinematicTask:
         obs[:10] = self.action
         return obs
 
+    def observation(self):  # what a state-based policy observes (``Task.observation``)
+        return self.observe()
+
     def ee_pose(self):
         from sim.rotations import rot6d_to_mat
 

@@ -49,8 +49,10 @@ class Lifecycle:
 
     # -- workers ----------------------------------------------------------------------------------------
     def spawn(self, robot: Robot) -> None:
-        """Starts the robot's worker and its first episode."""
-        robot.worker = self.workers(robot.id, robot.task)
+        """Starts the robot's worker and its first episode; the worker renders the policy's cameras when
+        the robot's policy sees them."""
+        robot.images = bool(robot.slot.policy.config.cameras)
+        robot.worker = self.workers(robot.id, robot.task, images=robot.images)
         robot.worker.prioritize(Priority.BACKGROUND)
         self.new_episode(robot)
 
@@ -78,6 +80,11 @@ class Lifecycle:
     def new_episode(self, robot: Robot) -> None:
         """The next episode, on the policy version assigned to the robot's lineage (hot swap)."""
         self.policies.move_to_assigned(robot)
+        if robot.worker is not None and bool(robot.slot.policy.config.cameras) != robot.images:
+            robot.worker.kill()  # the new version sees otherwise (cameras or state): a worker that observes so
+            robot.images = not robot.images
+            robot.worker = self.workers(robot.id, robot.task, images=robot.images)
+            robot.worker.prioritize(Priority.BACKGROUND)
         robot.seed += 1
         robot.slot.controller.reset(robot.id, robot.seed, robot.control)  # autonomous (a pause holds on)
         robot.steps = robot.assisted_steps = robot.events = 0

@@ -163,13 +163,24 @@ class Recorder:
         rec = self._of(robot)
         if (p := rec.pending) is not None and rec.episode is not None:
             f = p.frame
+            cameras = [c["name"] for c in rec.episode.meta.get(keys.CAMERAS, [])]
             rec.episode.write_step(
-                f.t, f.obs, p.action, f.pos, f.quat, f.gripper, frame.success, p.source, f.bodies, p.extras
+                f.t,
+                f.obs,
+                p.action,
+                f.pos,
+                f.quat,
+                f.gripper,
+                frame.success,
+                p.source,
+                f.bodies,
+                p.extras,
+                images={c: f.images[c] for c in cameras},
             )
         rec.pending = None
         if frame.t == 0 and not frame.done and rec.episode is None:
             path = self.data_dir / "episodes" / f"robot{robot.id:03d}_ep{robot.episode_id:06d}.mcap"
-            task = make_task(robot.task)  # cheap: names and specs only
+            task = make_task(robot.task, images=robot.images)  # cheap: names and specs only
             meta = {
                 "task": robot.task,
                 "seed": robot.seed,
@@ -182,7 +193,9 @@ class Recorder:
                 "action_labels": list(ACTION_LABELS),
                 "source": "fleet",
             }
-            rec.episode = EpisodeWriter(path, meta, object_names=list(frame.bodies))
+            sees = [c for c in task.cameras if c.name in frame.images] if robot.images else []
+            cameras = [c.to_json() for c in sees]  # what the policy saw, with every step
+            rec.episode = EpisodeWriter(path, meta, object_names=list(frame.bodies), cameras=cameras)
             with self.sessions() as s:
                 row = s.get(EpisodeRecord, robot.episode_id)
                 if row is not None:
@@ -252,7 +265,7 @@ class Recorder:
             "request": request_meta(ask),
         }
         # the file names its observation's channels (what fine-tuning checks against the policy's); the row does not
-        labels = {keys.OBS_LABELS: make_task(robot.task).obs_spec.labels()}
+        labels = {keys.OBS_LABELS: make_task(robot.task, images=robot.images).obs_spec.labels()}
         rec.takeover = SegmentWriter(path, meta | labels, self.segment_flush_seconds, self.segment_fsync)
         with self.sessions() as s:
             row = SegmentRecord(

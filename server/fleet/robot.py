@@ -81,6 +81,7 @@ class Robot:
     seed: int
     inbox: Inbox  # what the API asked, for the loop's next tick (``server.fleet.inbox``)
     worker: RobotWorker | None = None
+    images: bool = False  # its worker renders the policy's cameras (the policy it was started for sees them)
     frame: RobotFrame | None = None
     fresh: bool = False  # ``frame`` arrived since the robot's last step
     episode_id: int | None = None

@@ -93,4 +93,6 @@ def wait_any(
     # mixed back ends: do not block on one kind while another may have answered
 
 
-WorkerFactory = Callable[[int, str], RobotWorker]  # (robot id, task name) -> worker
+# (robot id, task name, images) -> worker; ``images``: the task observes as a policy that sees cameras does
+# (``sim.registry.make_task(name, images=True)``): its frames carry the policy cameras' images
+WorkerFactory = Callable[..., RobotWorker]

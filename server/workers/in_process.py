@@ -67,4 +67,8 @@ class InProcessWorker(RobotWorker):
 def in_process_workers(make_task: Callable[[str], Task] | None = None) -> WorkerFactory:
     if make_task is None:
         from sim.registry import make_task
-    return lambda robot_id, task: InProcessWorker(make_task(task))
+
+    def factory(robot_id: int, task: str, images: bool = False) -> InProcessWorker:
+        return InProcessWorker(make_task(task, images=images) if images else make_task(task))
+
+    return factory

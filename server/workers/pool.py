@@ -33,7 +33,8 @@ from sim.frame import RobotFrame
 
 
 def _host(conn: Connection) -> None:
-    """Process entry point: ``(cmd, rid, seq, arg)`` with cmd ``open`` (arg: the task's name), ``reset``
+    """Process entry point: ``(cmd, rid, seq, arg)`` with cmd ``open`` (arg: the task's name and whether it
+    renders the policy's cameras), ``reset``
     (the seed), ``step`` ((action, hold)), ``urgent`` (whether the robot is under teleop), ``drop`` or
     ``close``; answers ``(rid, seq, status, payload)`` to resets and steps (``seq`` tells a robot's answer
     from a dropped predecessor's). It serves one request at a time and reads the pipe between two: the next
@@ -65,7 +66,7 @@ def _host(conn: Connection) -> None:
                 elif cmd == "open":
                     failed.pop(rid, None)
                     try:
-                        tasks[rid] = make_task(arg)
+                        tasks[rid] = make_task(arg[0], images=arg[1])
                     except Exception:  # reported on the robot's requests
                         failed[rid] = traceback.format_exc(limit=3)
                 elif cmd == "urgent":
@@ -171,13 +172,13 @@ class _Host:
 class PoolWorker(RobotWorker):
     """One robot on a host process, shared with the host's other robots (up to ``robots_per_process``)."""
 
-    def __init__(self, host: _Host, robot_id: int, task: str) -> None:
+    def __init__(self, host: _Host, robot_id: int, task: str, images: bool = False) -> None:
         super().__init__()
         self.host, self.robot_id = host, robot_id
         self._killed = False
         self._key = (robot_id, 0)  # the request in flight: (robot, seq)
         host.robots.add(robot_id)
-        host.send(("open", robot_id, 0, task))
+        host.send(("open", robot_id, 0, (task, images)))
 
     @property
     def pid(self) -> int | None:
@@ -306,7 +307,7 @@ class PoolFactory:
         self.hosts: list[_Host] = []
         self._started = 0  # hosts started so far (their process names: robots-0, robots-1, ...)
 
-    def __call__(self, robot_id: int, task: str) -> PoolWorker:
+    def __call__(self, robot_id: int, task: str, images: bool = False) -> PoolWorker:
         for host in [h for h in self.hosts if not h.robots or not h.alive()]:
             if host.alive():
                 host.close()
@@ -317,7 +318,7 @@ class PoolFactory:
             host = _Host(self.name.format(host=self._started, robot=robot_id), self.niceness, self.per_process)
             self._started += 1
             self.hosts.append(host)
-        return PoolWorker(host, robot_id, task)
+        return PoolWorker(host, robot_id, task, images)
 
 
 def pool_workers(niceness: int, robots_per_process: int) -> WorkerFactory:

@@ -21,13 +21,13 @@ from server.workers.spawn import SPAWN, Niceness, readable, serve_request
 from sim.frame import RobotFrame
 
 
-def _serve(conn: Connection, task_name: str) -> None:
+def _serve(conn: Connection, task_name: str, images: bool = False) -> None:
     """Process entry point: answers ``("reset", seed)``, ``("step", (action, hold))``, ``("close", None)``;
     exits on ``close`` or when the server's end of the pipe goes away."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from sim.registry import make_task
 
-    task = make_task(task_name)
+    task = make_task(task_name, images=images)
     try:
         while True:
             try:
@@ -47,11 +47,11 @@ def _serve(conn: Connection, task_name: str) -> None:
 class ProcessWorker(RobotWorker):
     """A spawned process per robot; ``niceness`` is the CPU priority of its background mode."""
 
-    def __init__(self, task: str, name: str = "robot", niceness: int = 10) -> None:
+    def __init__(self, task: str, name: str = "robot", niceness: int = 10, images: bool = False) -> None:
         super().__init__()
         self.niceness = Niceness(niceness)
         parent, child = SPAWN.Pipe()
-        self._process = SPAWN.Process(target=_serve, args=(child, task), daemon=True, name=name)
+        self._process = SPAWN.Process(target=_serve, args=(child, task, images), daemon=True, name=name)
         self._process.start()
         child.close()
         self._conn = parent
@@ -141,4 +141,7 @@ class ProcessWorker(RobotWorker):
 
 
 def process_workers(niceness: int) -> WorkerFactory:
-    return lambda robot_id, task: ProcessWorker(task, name=f"robot-{robot_id}", niceness=niceness)
+    def factory(robot_id: int, task: str, images: bool = False) -> ProcessWorker:
+        return ProcessWorker(task, name=f"robot-{robot_id}", niceness=niceness, images=images)
+
+    return factory

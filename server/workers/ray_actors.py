@@ -44,11 +44,11 @@ class RobotHost:
         os.environ.setdefault("OMP_NUM_THREADS", "1")
         self.tasks: dict = {}
 
-    def open(self, rid: int, task: str) -> None:
+    def open(self, rid: int, task: str, images: bool = False) -> None:
         from sim.registry import make_task
 
         self.drop(rid)
-        self.tasks[rid] = make_task(task)
+        self.tasks[rid] = make_task(task, images=images)
 
     def reset(self, rid: int, seed: int) -> RobotFrame:
         task = self._task(rid)
@@ -119,13 +119,13 @@ class _Host:
 class RayWorker(RobotWorker):
     """One robot on a ``RobotHost`` actor."""
 
-    def __init__(self, host: _Host, robot_id: int, task: str) -> None:
+    def __init__(self, host: _Host, robot_id: int, task: str, images: bool = False) -> None:
         super().__init__()
         self.host, self.robot_id, self.ray = host, robot_id, host.ray
         self._killed = False
         self._ref = None  # the request in flight
         host.robots.add(robot_id)
-        self._opened = host.handle.open.remote(robot_id, task)  # its errors arrive with the first request
+        self._opened = host.handle.open.remote(robot_id, task, images)  # its errors arrive with the first request
 
     @property
     def pid(self) -> int | None:
@@ -241,7 +241,7 @@ class RayFactory:
             self._actor = self._ray.remote(num_cpus=self.cpus, max_restarts=-1, max_task_retries=0)(RobotHost)
         return self._ray, self._actor
 
-    def __call__(self, robot_id: int, task: str) -> RayWorker:
+    def __call__(self, robot_id: int, task: str, images: bool = False) -> RayWorker:
         ray, actor = self._actor_class()
         for host in [h for h in self.hosts if not h.robots or h.gone]:
             host.kill()
@@ -252,4 +252,4 @@ class RayFactory:
             host = _Host(ray, actor, f"robots-{self._id}-{self._started}", self.overhead)
             self._started += 1
             self.hosts.append(host)
-        return RayWorker(host, robot_id, task)
+        return RayWorker(host, robot_id, task, images)

@@ -87,3 +87,25 @@ def test_action_size_and_chunking_that_cannot_run_the_task_are_refused():
         check_fits({"task": "lift-cube"}, "lift-cube")
     with pytest.raises(KeyError, match="unknown task"):
         check_fits(_info("lift-cube"), "lift-everything")
+
+
+def test_a_policy_whose_cameras_a_task_lacks_is_refused():
+    from sim.env import ROBOT_OBS
+    from sim.vision import CameraSpec
+
+    def seeing(*cams):
+        cfg = DiffusionPolicyConfig(obs_dim=ROBOT_OBS.dim, cameras=cams)
+        return {"policy": cfg.to_dict(), "obs_labels": ROBOT_OBS.labels()}
+
+    check_fits(seeing(CameraSpec("front", 84, 76), CameraSpec("wrist", 84, 76)), "lift-hammer")
+    with pytest.raises(CheckpointError) as err:
+        check_fits(seeing(CameraSpec("front", 84, 76), CameraSpec("wrist", 84, 76)), "open-drawer", "eyes")
+    assert str(err.value) == (
+        "policy eyes cannot run task open-drawer: it sees camera 'front', which task open-drawer lacks (it has "
+        "side); it sees camera 'wrist', which task open-drawer lacks (it has side)"
+    )
+    with pytest.raises(CheckpointError, match="it sees 'side' at 84 pixels, task cup-stack renders 104"):
+        check_fits(seeing(CameraSpec("side", 84, 76)), "cup-stack")
+    state_based = {"obs_labels": make_task("lift-cube").obs_spec.labels()}  # not what a policy that sees observes
+    with pytest.raises(CheckpointError, match="records 32 observation channels for 11-dim inputs"):
+        check_fits(seeing(CameraSpec("front", 84, 76)) | state_based, "lift-cube")

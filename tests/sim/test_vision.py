@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from sim.env import ROBOT_OBS
 from sim.frame import RobotFrame
 from sim.registry import make_expert, make_task
 from sim.vision import COLLISION_GROUP, POLICY_CAMERAS, ROBOT_PREFIXES, VISUAL_GROUP, CameraSpec, fast_model
@@ -49,6 +50,10 @@ def test_frames_carry_what_the_cameras_see_after_every_step_only_when_asked():
         assert np.abs(frame.images["wrist"].astype(int) - first.images["wrist"]).mean() > 1.0
         plain.reset(3)
         assert RobotFrame.from_task(plain).images == {}  # a low-dimensional policy's frames render nothing
+        # a policy that sees observes the robot's own state besides the images: no object pose, box or ray
+        assert task.obs_spec.labels() == ROBOT_OBS.labels() and frame.obs.shape == (ROBOT_OBS.dim,)
+        np.testing.assert_allclose(frame.obs, task.robot_obs(), atol=1e-6)
+        assert "object_pos" in [n for n, _ in type(task).obs_spec.parts]  # experts and tests keep the state
     finally:
         task.close()
         plain.close()

@@ -231,8 +231,8 @@ def test_served_evaluated_and_assisted_episodes_take_the_same_actions(tmp_path):
 def _recording_real_workers():
     real = in_process_workers()
 
-    def factory(robot_id, task):
-        worker = real(robot_id, task)
+    def factory(robot_id, task, images=False):
+        worker = real(robot_id, task, images)
         sent = []
         step = worker.request_step
 
