@@ -200,8 +200,9 @@ def pretraining_split(policy: DiffusionPolicy, info: dict, folder: str | Path) -
         checked = check_held_out(ds, [*train_ids.tolist(), *val_ids.tolist()], info)
     except HeldOutError as exc:
         raise FinetuneDataError(str(exc)) from None
-    train = dict(zip((keys.OBS, keys.ACTION), ds.windows(ds.sample_index(train_ids)), strict=True))
-    val = dict(zip((keys.OBS, keys.ACTION), ds.windows(ds.sample_index(val_ids)), strict=True))
+    train_index, val_index = ds.sample_index(train_ids), ds.sample_index(val_ids)
+    train = dict(zip((keys.OBS, keys.ACTION), ds.windows(train_index), strict=True)) | ds.image_windows(train_index)
+    val = dict(zip((keys.OBS, keys.ACTION), ds.windows(val_index), strict=True)) | ds.image_windows(val_index)
     return PretrainingSplit(train, val, train_names, left_out, checked.to_dict())
 
 
@@ -222,7 +223,10 @@ def finetune_policy(
     if n_take == 0:
         raise FinetuneDataError("no takeover samples to fine-tune on")
     n_pre = len(pretrain[keys.OBS]) if cfg.ratio < 1 else 0
-    data = {k: np.concatenate([takeover[k], pretrain[k][: n_pre or 0]]) for k in (keys.OBS, keys.ACTION)}
+    wanted = (keys.OBS, keys.ACTION, *(keys.image_key(c.name) for c in parent.config.cameras))
+    if lacks := [k for k in wanted if k not in takeover or (n_pre and k not in pretrain)]:
+        raise FinetuneDataError(f"the policy sees {list(wanted[2:])}: no {lacks} in the fine-tuning data")
+    data = {k: np.concatenate([takeover[k], pretrain[k][: n_pre or 0]]) for k in wanted}
     sampler = MixedSampler(n_take, n_pre, cfg.ratio)
     policy = copy.deepcopy(parent)
     widened = policy.widen_obs_range(takeover[keys.OBS]) if cfg.widen_obs_range else 0

@@ -14,9 +14,13 @@ end-effector pose. ``/tf`` carries the end effector and
 ``/denoising/field`` the denoising vector field as a ``foxglove.SceneUpdate`` of arrows coloured
 by mode. ``/camera/{front,wrist}/image/compressed`` carry the camera views the operator was shown
 (``foxglove.CompressedImage``, JPEG; ``frame_id`` names the episode step it shows), when the console
-showed them (``server.cameras``). The writer flushes at least every ``flush_seconds`` (the service:
-after every step, so a crash of the server loses no step it applied; docs/service.md, "Durability");
-``read_segment(path, recover=True)`` salvages a file left open by a crash.
+showed them (``server.cameras``). For a policy that sees cameras, ``/observation/images/<camera>`` carry
+what each of its cameras saw before each step's action (PNG, as in episodes, ``storage.images``;
+``frame_id`` ``step-<t>`` names the takeover step), its cameras listed in the metadata
+(``keys.CAMERAS``): the frames fine-tuning trains on (``Segment.frames``). The writer flushes at least
+every ``flush_seconds`` (the service: after every step, so a crash of the server loses no step it
+applied; docs/service.md, "Durability"); ``read_segment(path, recover=True)`` salvages a file left open
+by a crash.
 """
 
 from __future__ import annotations
@@ -31,24 +35,13 @@ from pathlib import Path
 import numpy as np
 
 from storage import keys
+from storage.images import COMPRESSED_IMAGE_SCHEMA, ImageDecodeError, check_frame, decode_png, png_message
 from storage.mcap_io import JsonMcapWriter, read_all, rebuild, salvage, stamp
 
 _COLOURS = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16), (0.58, 0.4, 0.74)]
 _OBJ = {"type": "object"}
-_COMPRESSED_IMAGE = {  # Foxglove's JSON schema: the bytes as base64, so a JSON reader gets them back
-    "type": "object",
-    "properties": {
-        "timestamp": {
-            "type": "object",
-            "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}},
-        },
-        "frame_id": {"type": "string"},
-        "data": {"type": "string", "contentEncoding": "base64"},
-        "format": {"type": "string"},
-    },
-}
 SCHEMAS = {
-    keys.SCHEMA_COMPRESSED_IMAGE: _COMPRESSED_IMAGE,
+    keys.SCHEMA_COMPRESSED_IMAGE: COMPRESSED_IMAGE_SCHEMA,
     keys.SCHEMA_TAKEOVER: _OBJ,
     keys.SCHEMA_TAKEOVER_STEP: _OBJ,
     keys.SCHEMA_TAKEOVER_END: _OBJ,
@@ -119,6 +112,10 @@ class SegmentWriter:
         }
         self._cameras: dict[str, int] = {}  # camera name -> its channel, opened at its first view
         self.meta = dict(meta)
+        self._sizes = {str(c["name"]): int(c["size"]) for c in self.meta.get(keys.CAMERAS) or []}
+        self._policy_cameras = {
+            name: ch(keys.TOPIC_POLICY_IMAGE.format(name=name), keys.SCHEMA_COMPRESSED_IMAGE) for name in self._sizes
+        }
         self.steps = 0
         self._flush_seconds, self._fsync = flush_seconds, fsync
         self._last_flush = time.monotonic()
@@ -141,9 +138,20 @@ class SegmentWriter:
         uncertainty: float | None,
         shadow: dict[str, float] | None = None,
         field: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None,
+        images: dict[str, np.ndarray] | None = None,
     ) -> None:
-        """field: (samples (S, 3) m, vectors (S, 3), labels (S,), arrow scale) for the scene update."""
+        """field: (samples (S, 3) m, vectors (S, 3), labels (S,), arrow scale) for the scene update; images:
+        camera -> (size, size, 3) uint8, what each camera the metadata declares (``keys.CAMERAS``) saw before
+        the action, every one at every step."""
+        images = images or {}
+        if set(images) != set(self._sizes):
+            raise ValueError(f"frames of cameras {sorted(images)}, the segment declared {sorted(self._sizes)}")
+        for name, image in images.items():
+            if check_frame(image, name).shape[:2] != (self._sizes[name],) * 2:
+                raise ValueError(f"camera {name!r} frame is {np.shape(image)}, declared {self._sizes[name]} pixels")
         ns = time.time_ns()
+        for name, image in images.items():
+            self._mcap.add(self._policy_cameras[name], ns, png_message(image, f"step-{self.steps}", ns))
         self._add(
             "step",
             ns,
@@ -287,6 +295,7 @@ class Segment:
     recovered: bool = False
     fields: list[dict] = field(default_factory=list)
     images: dict[str, list[dict]] = field(default_factory=dict)  # camera -> its foxglove.CompressedImage messages
+    policy_images: dict[str, list[dict]] = field(default_factory=dict)  # camera -> what the policy saw (``frames``)
     step_messages: list[dict] = field(default_factory=list, repr=False)  # the /takeover/step payloads
 
     @property
@@ -308,6 +317,27 @@ class Segment:
         except (KeyError, TypeError, ValueError) as exc:
             raise SegmentReadError(self.path, f"malformed step ({type(exc).__name__}: {exc})") from exc
 
+    def frames(self, camera: str) -> np.ndarray:
+        """(T, size, size, 3) uint8: what the policy's ``camera`` saw at each step (``keys.CAMERAS``).
+        SegmentReadError when the segment lacks the camera, a step's frame, or a frame is not a PNG."""
+        spec = next((c for c in self.meta.get(keys.CAMERAS) or [] if c.get("name") == camera), None)
+        if spec is None:
+            raise SegmentReadError(
+                self.path, f"no frames of camera {camera!r} (the policy's cameras were not recorded)"
+            )
+        by_step = {m.get("frame_id"): m for m in self.policy_images.get(camera, [])}
+        size = (int(spec["size"]),) * 2
+        out = []
+        for t in range(len(self.step_messages)):
+            message = by_step.get(f"step-{t}")
+            if message is None:
+                raise SegmentReadError(self.path, f"camera {camera!r}: no frame of step {t}")
+            try:
+                out.append(decode_png(message, size))
+            except ImageDecodeError as exc:
+                raise SegmentReadError(self.path, f"camera {camera!r}, step {t}: {exc}") from exc
+        return np.stack(out) if out else np.zeros((0, *size, 3), np.uint8)
+
     def labels(self) -> tuple[np.ndarray, np.ndarray]:
         """(obs (T, obs_dim), normalized action labels (T, 10)) for fine-tuning."""
         return (
@@ -328,6 +358,8 @@ def _collect(path: Path, messages, recovered: bool) -> Segment:
             seg.end = doc
         elif channel.topic == keys.TOPIC_FIELD:
             seg.fields.append(doc)
+        elif channel.topic.startswith(keys.TOPIC_POLICY_IMAGE.format(name="")):
+            seg.policy_images.setdefault(channel.topic.rsplit("/", 1)[1], []).append(doc)
         elif channel.topic.startswith("/camera/") and channel.topic.endswith("/image/compressed"):
             seg.images.setdefault(channel.topic.split("/")[2], []).append(doc)
     if not seg.meta:

@@ -74,16 +74,22 @@ class TakeoverSet:
     episode_ends: np.ndarray
     used: list[str] = field(default_factory=list)
     skipped: dict[str, str] = field(default_factory=dict)
+    images: dict[str, np.ndarray] = field(default_factory=dict)  # camera -> (N, size, size, 3) uint8 the policy saw
 
     def __len__(self) -> int:
         return len(self.obs)
 
     def arrays(self, obs_horizon: int, action_horizon: int) -> dict[str, np.ndarray]:
-        """{OBS: (N, H, obs_dim), ACTION: (N, C, 10)}: one sample per takeover step."""
+        """{OBS: (N, H, obs_dim), ACTION: (N, C, 10)} and each camera's frames (``keys.image_key``: (N, H,
+        size, size, 3) uint8): one sample per takeover step."""
         if not len(self):
             return {
                 keys.OBS: np.zeros((0, obs_horizon, self.obs.shape[1]), np.float32),
                 keys.ACTION: np.zeros((0, action_horizon, ACTION_DIM), np.float32),
+                **{
+                    keys.image_key(c): np.zeros((0, obs_horizon, *im.shape[1:]), np.uint8)
+                    for c, im in self.images.items()
+                },
             }
         ds = DemoDataset(
             folder=Path("."),
@@ -95,11 +101,14 @@ class TakeoverSet:
             names=self.used,
             meta=[{} for _ in self.used],
             excluded={},
+            images=self.images,
         )
         return ds.arrays("all")
 
 
-def _steps(path: Path, obs_dim: int, obs_labels: list[str] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _steps(
+    path: Path, obs_dim: int, obs_labels: list[str] | None, cameras: list[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     seg = read_segment(path)  # closed and recovered segments are complete files
     if (
         obs_labels is not None
@@ -129,7 +138,7 @@ def _steps(path: Path, obs_dim: int, obs_labels: list[str] | None) -> tuple[np.n
         raise SegmentReadError(path, f"poses of shape {pose.shape}, expected (T, 7)")
     if not (np.isfinite(obs).all() and np.isfinite(act).all()):
         raise SegmentReadError(path, "non-finite observation or action values")
-    return obs, act, pose
+    return obs, act, pose, {c: seg.frames(c) for c in cameras}
 
 
 def load_takeovers(
@@ -137,18 +146,21 @@ def load_takeovers(
     obs_dim: int,
     selection: TakeoverSelection | None = None,
     obs_labels: list[str] | None = None,
+    cameras: list[str] | tuple[str, ...] = (),
 ) -> TakeoverSet:
     """Reads every segment in ``paths`` (in order); unusable ones are listed in ``skipped``. Of each
     usable one the steps ``selection`` keeps (its tail; which segments to pass is the caller's).
     ``obs_labels``: the observation layout the policy takes (``storage.obs_layout``); a segment recorded
     with another one is unusable, its reason naming the channels that differ (one that records none,
-    written before segments did, is judged by its observations' size alone)."""
+    written before segments did, is judged by its observations' size alone). ``cameras``: those the policy
+    sees; a segment without their frames at every step is unusable (``Segment.frames``)."""
     selection = selection or TakeoverSelection()
     obs, act, pose, ends, used, skipped = [], [], [], [], [], {}
+    frames: dict[str, list[np.ndarray]] = {c: [] for c in cameras}
     for path in paths:
         path = Path(path)
         try:
-            o, a, p = _steps(path, obs_dim, obs_labels)
+            o, a, p, f = _steps(path, obs_dim, obs_labels, list(cameras))
         except SegmentReadError as exc:
             skipped[path.name] = exc.reason
             continue
@@ -157,6 +169,8 @@ def load_takeovers(
             continue
         keep = selection.steps(len(o))
         o, a, p = o[keep], a[keep], p[keep]
+        for c in cameras:
+            frames[c].append(f[c][keep])
         obs.append(o)
         act.append(a)
         pose.append(p)
@@ -170,7 +184,7 @@ def load_takeovers(
             np.zeros(0, np.int64),
             used,
             skipped,
-        )
+        )  # no frames: nothing to train on
     return TakeoverSet(
         np.concatenate(obs),
         np.concatenate(act),
@@ -178,4 +192,5 @@ def load_takeovers(
         np.cumsum(ends).astype(np.int64),
         used,
         skipped,
+        {c: np.concatenate(v) for c, v in frames.items()},
     )

@@ -266,6 +266,8 @@ class Recorder:
         }
         # the file names its observation's channels (what fine-tuning checks against the policy's); the row does not
         labels = {keys.OBS_LABELS: make_task(robot.task, images=robot.images).obs_spec.labels()}
+        if robot.images:  # the frames the policy saw, with every step: what fine-tuning trains it on
+            labels[keys.CAMERAS] = [c.to_json() for c in robot.slot.policy.config.cameras]
         rec.takeover = SegmentWriter(path, meta | labels, self.segment_flush_seconds, self.segment_fsync)
         with self.sessions() as s:
             row = SegmentRecord(
@@ -309,6 +311,7 @@ class Recorder:
             step.scores.get("denoising"),
             shadow={k: v for k, v in step.scores.items() if k != "denoising"},
             field=field,
+            images={c["name"]: frame.images[c["name"]] for c in writer.meta.get(keys.CAMERAS, [])},
         )
 
     def takeover_images(self, robot: Robot, images) -> None:

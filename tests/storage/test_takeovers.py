@@ -97,3 +97,29 @@ def test_a_segment_recorded_with_another_observation_layout_is_left_out_naming_i
     old_policy = load_takeovers(paths, obs_dim=lift.dim)
     assert old_policy.used == ["same.mcap", "old.mcap", "swapped.mcap"]
     assert f"the policy takes {lift.dim} per step" in old_policy.skipped["cup.mcap"]
+
+
+def test_takeovers_of_a_policy_that_sees_carry_the_frames_it_saw(tmp_path):
+    from tests.helpers import write_segment
+
+    cams = [{"name": "front", "size": 8, "crop": 6}]
+    rng = np.random.default_rng(0)
+    paths, shown = [], []
+    for i, steps in enumerate((3, 4)):
+        w = SegmentWriter(tmp_path / f"s{i}.mcap", {"robot": 0, "task": "lift-cube", keys.CAMERAS: cams})
+        for _ in range(steps):
+            frame = rng.integers(0, 256, (8, 8, 3), dtype=np.uint8)
+            shown.append(frame)
+            act = np.r_[0.0, 0.0, 0.9, 1, 0, 0, 0, 1, 0, 1.0]
+            w.write_step(np.zeros(11), {}, act, act, act[:3], [0, 0, 0, 1.0], 0.1, images={"front": frame})
+        with pytest.raises(ValueError, match="declared"):
+            w.write_step(np.zeros(11), {}, act, act, act[:3], [0, 0, 0, 1.0], 0.1)
+        w.close("closed", "hand-back")
+        paths.append(tmp_path / f"s{i}.mcap")
+    plain = write_segment(tmp_path / "plain.mcap", 11)  # recorded for a state-only policy: no frames
+    out = load_takeovers([*paths, plain], obs_dim=11, cameras=["front"])
+    assert out.used == ["s0.mcap", "s1.mcap"] and "no frames of camera 'front'" in out.skipped["plain.mcap"]
+    np.testing.assert_array_equal(out.images["front"], np.stack(shown))
+    arrays = out.arrays(1, 1)
+    assert arrays[keys.image_key("front")].shape == (7, 1, 8, 8, 3)
+    np.testing.assert_array_equal(read_segment(paths[1]).frames("front"), np.stack(shown[3:]))
