@@ -76,11 +76,16 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_import(args: argparse.Namespace) -> int:
     from sim.registry import TASKS, make_task
     from sim.spaces import ACTION_LABELS
-    from storage.lerobot.reader import LeRobotImportError, import_dataset
+    from storage.lerobot.reader import LeRobotImportError, image_features, import_dataset, read_info
 
     if args.task not in TASKS:
         return fail("import lerobot", ValueError(f"unknown task {args.task!r}; registered: {', '.join(TASKS)}"))
-    spec = make_task(args.task).obs_spec
+    try:  # a dataset with camera features is imported for a policy that sees: the task observed as one does
+        sees = bool(image_features(read_info(args.root)))
+    except LeRobotImportError as exc:
+        return fail("import lerobot", exc)
+    task = make_task(args.task, images=sees)
+    spec = task.obs_spec
     pose = spec.ee_pose if spec.has_ee_pose else None
     try:
         report = import_dataset(
@@ -92,6 +97,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
             pose_from_state=pose,
             overwrite=args.overwrite,
             progress=not args.quiet,
+            cameras=[c.to_json() for c in task.cameras] if sees else [],
         )
     except (LeRobotImportError, OSError) as exc:
         return fail("import lerobot", exc)

@@ -51,16 +51,28 @@ def png_message(image: np.ndarray, frame_id: str, ns: int) -> dict:
     }
 
 
+def decode_png_bytes(data: bytes, size: tuple[int, int] | None = None) -> np.ndarray:
+    """The (h, w, 3) uint8 frame of PNG (or any image file's) ``data``; ImageDecodeError for anything else,
+    or another (h, w) than ``size``."""
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            arr = np.asarray(im.convert("RGB"))
+    except (ValueError, OSError, TypeError) as exc:
+        raise ImageDecodeError(f"not an image: {exc}") from exc
+    if size is not None and arr.shape[:2] != tuple(size):
+        raise ImageDecodeError(f"frame of {arr.shape[1]}x{arr.shape[0]} pixels, expected {size[1]}x{size[0]}")
+    return arr
+
+
 def decode_png(message: dict, size: tuple[int, int] | None = None) -> np.ndarray:
     """The (h, w, 3) uint8 frame of a ``png_message``; ImageDecodeError for anything else, or another
     (h, w) than ``size``."""
     if message.get("format") != "png":
         raise ImageDecodeError(f"frame format {message.get('format')!r}, expected 'png'")
     try:
-        with Image.open(io.BytesIO(base64.b64decode(message["data"], validate=True))) as im:
-            arr = np.asarray(im.convert("RGB"))
-    except (KeyError, ValueError, OSError, TypeError) as exc:
+        data = base64.b64decode(message["data"], validate=True)
+    except (KeyError, ValueError, TypeError) as exc:
         raise ImageDecodeError(f"not a PNG frame: {exc}") from exc
-    if size is not None and arr.shape[:2] != tuple(size):
-        raise ImageDecodeError(f"frame of {arr.shape[1]}x{arr.shape[0]} pixels, expected {size[1]}x{size[0]}")
-    return arr
+    if not data.startswith(b"\x89PNG"):
+        raise ImageDecodeError("not a PNG frame")
+    return decode_png_bytes(data, size)

@@ -11,6 +11,7 @@ and takeovers whose episode was not recorded).
 
 from __future__ import annotations
 
+import base64
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -94,6 +95,9 @@ class Attempt:
     obs_labels: list[str] = field(default_factory=list)
     meta: dict = field(default_factory=dict)  # seed, robot, fleet episode id, outcome, policy, signal, ...
     takeovers: dict[int, TakeoverLabel] = field(default_factory=dict)  # segment id -> its label
+    # what a policy that sees saw: camera -> one PNG per frame (the recorded bytes, not decoded), and their specs
+    images: dict[str, list[bytes]] = field(default_factory=dict)
+    cameras: list[dict] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.action)
@@ -149,7 +153,13 @@ def from_episode(ep: Episode, labels: dict[int, TakeoverLabel] | None = None, me
         }
         | (meta or {}),
         takeovers={sid: (labels or {}).get(sid, TakeoverLabel()) for sid in sorted(present)},
+        images={c["name"]: [_png(m) for m in ep.images.get(c["name"], [])] for c in ep.cameras},
+        cameras=ep.cameras,
     )
+
+
+def _png(message: dict) -> bytes:
+    return base64.b64decode(message["data"])
 
 
 def from_segment(
@@ -187,7 +197,14 @@ def from_segment(
         meta={"seed": seg.meta.get("seed"), "robot": seg.meta.get("robot"), "episode": seg.meta.get("episode")}
         | (meta or {}),
         takeovers={segment_id: label or TakeoverLabel()},
+        images={c["name"]: _segment_pngs(seg, c["name"], n) for c in seg.meta.get(keys.CAMERAS) or []},
+        cameras=list(seg.meta.get(keys.CAMERAS) or []),
     )
+
+
+def _segment_pngs(seg: Segment, camera: str, n: int) -> list[bytes]:
+    by_step = {m.get("frame_id"): m for m in seg.policy_images.get(camera, [])}
+    return [_png(by_step[f"step-{t}"]) for t in range(n) if f"step-{t}" in by_step]
 
 
 def from_folder(folder: str | Path, task: str | None = None) -> list[Attempt]:

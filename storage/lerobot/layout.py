@@ -13,8 +13,12 @@ layout is written here, as LeRobot documents and writes it:
   stats (``stats/<feature>/<stat>``) and our own columns (``hitl/...``: kind, source file, outcome,
   seed, robot, fleet episode, policy, the takeovers with their labels as JSON);
 - ``data/chunk-XXX/file-YYY.parquet``: the frames, one column per feature; vectors as fixed-size
-  lists, as ``datasets`` writes them. An episode never spans two files; a file holds whole episodes
-  up to about ``data_files_size_in_mb``, a chunk ``chunks_size`` files.
+  lists, as ``datasets`` writes them. What a policy that sees saw is an ``image`` feature per camera,
+  ``observation.images.<camera>`` (shape [height, width, 3], names [height, width, channels]), its PNG
+  bytes embedded in the parquet as ``{"bytes", "path"}`` structs, as LeRobot stores image features
+  (``use_videos=False``): the recorded bytes themselves, lossless, no video codec to decode; its stats
+  are per channel in [0, 1], shaped [3, 1, 1], as LeRobot's. An episode never spans two files; a file
+  holds whole episodes up to about ``data_files_size_in_mb``, a chunk ``chunks_size`` files.
 
 Episode and frame indices are contiguous and increasing: ``index`` runs over the whole dataset,
 ``frame_index`` within the episode, ``timestamp`` is ``frame_index / fps``.
@@ -53,6 +57,7 @@ DEFAULT_FEATURES = {  # every LeRobot dataset has these
     "task_index": {"dtype": "int64", "shape": [1], "names": None},
 }
 POSE_NAMES = ["x", "y", "z", "qx", "qy", "qz", "qw"]
+IMAGE_TYPE = pa.struct([("bytes", pa.binary()), ("path", pa.string())])
 COMMAND_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
 
 # feature names, shared with the importer
@@ -66,7 +71,19 @@ class ExportError(Exception):
     """The attempts cannot be written as one dataset (nothing to export, mixed dimensions, ...)."""
 
 
-def features(obs_labels: list[str], obs_dim: int, action_labels: list[str], action_dim: int) -> dict[str, dict]:
+def image_feature(camera: dict) -> tuple[str, dict]:
+    """LeRobot's image feature for one camera (``CameraSpec.to_json``: name, size)."""
+    size = int(camera["size"])
+    return keys.image_key(camera["name"]), {
+        "dtype": "image",
+        "shape": [size, size, 3],
+        "names": ["height", "width", "channels"],
+    }
+
+
+def features(
+    obs_labels: list[str], obs_dim: int, action_labels: list[str], action_dim: int, cameras: list[dict] = ()
+) -> dict[str, dict]:
     """The dataset's features (LeRobot's schema: dtype, shape, names), ours then LeRobot's defaults."""
     names = obs_labels if len(obs_labels) == obs_dim else None
     action_names = list(action_labels) if len(action_labels) == action_dim else None
@@ -88,7 +105,7 @@ def features(obs_labels: list[str], obs_dim: int, action_labels: list[str], acti
         LABEL: {"dtype": "int64", "shape": [1], "names": {"codes": {k or "none": v for k, v in LABEL_CODES.items()}}},
         DISCARDED: {"dtype": "bool", "shape": [1], "names": None},
     }
-    return ours | DEFAULT_FEATURES
+    return ours | dict(image_feature(c) for c in cameras) | DEFAULT_FEATURES
 
 
 def _columns(a: Attempt, episode_index: int, start: int, task_index: int, fps: int) -> dict[str, np.ndarray]:
@@ -117,12 +134,15 @@ def _columns(a: Attempt, episode_index: int, start: int, task_index: int, fps: i
         "episode_index": np.full(n, episode_index, np.int64),
         "index": start + frame,
         "task_index": np.full(n, task_index, np.int64),
-    }
+    } | {keys.image_key(name): frames for name, frames in a.images.items()}
 
 
 def _arrow(columns: dict[str, np.ndarray], feats: dict[str, dict]) -> pa.Table:
     arrays = {}
     for name, values in columns.items():
+        if feats[name]["dtype"] == "image":  # LeRobot's (datasets') Image: {bytes, path} structs
+            arrays[name] = pa.array([{"bytes": b, "path": None} for b in values], type=IMAGE_TYPE)
+            continue
         dtype = pa.from_numpy_dtype(np.dtype(feats[name]["dtype"]))
         if feats[name]["shape"] == [1]:
             arrays[name] = pa.array(values.reshape(-1), type=dtype)
@@ -146,6 +166,17 @@ def feature_stats(values: np.ndarray) -> dict[str, list]:
     for q in QUANTILES:
         out[f"q{round(q * 100):02d}"] = np.quantile(x, q, axis=0)
     return {k: v.tolist() for k, v in out.items()} | {"count": [len(x)]}
+
+
+def image_stats(pngs: list[bytes], most: int = 100) -> dict[str, list]:
+    """LeRobot's stats of an image feature: per channel in [0, 1], each shaped [3, 1, 1], over up to
+    ``most`` of the frames evenly spaced (LeRobot samples frames too)."""
+    from storage.images import decode_png_bytes
+
+    picked = pngs[:: max(1, -(-len(pngs) // most))]
+    pixels = np.concatenate([decode_png_bytes(b).reshape(-1, 3) for b in picked]) / 255.0
+    stats = feature_stats(pixels)
+    return {k: (np.asarray(v).reshape(3, 1, 1).tolist() if k != "count" else [len(pngs)]) for k, v in stats.items()}
 
 
 @dataclass
@@ -194,14 +225,22 @@ def write_dataset(
     dims = {(a.obs.shape[1], a.action.shape[1]) for a in attempts}
     if len(dims) != 1:
         raise ExportError(f"the selection mixes observation/action sizes {sorted(dims)}: export one task at a time")
+    cameras = attempts[0].cameras
+    if other := [a.source for a in attempts if a.cameras != cameras]:
+        raise ExportError(f"the selection mixes camera sets ({other[0]}, {attempts[0].source}): export one at a time")
+    if short := [a.source for a in attempts if any(len(a.images.get(c["name"], [])) != len(a) for c in cameras)]:
+        raise ExportError(f"{short[0]} lacks frames of some steps: it cannot be exported with its cameras")
     if root.exists() and any(root.iterdir()) and not overwrite:
         raise ExportError(f"{root} is not empty (pass overwrite to replace it)")
     obs_dim = attempts[0].obs.shape[1]
     labels = next((a.obs_labels for a in attempts if len(a.obs_labels) == obs_dim), [])
-    feats = features(labels, obs_dim, action_labels, attempts[0].action.shape[1])
+    feats = features(labels, obs_dim, action_labels, attempts[0].action.shape[1], cameras)
     texts = task_texts or {}
     task_strings = list(dict.fromkeys(texts.get(a.task, a.task) for a in attempts))
-    row_bytes = sum((8 if f["dtype"] == "int64" else 4) * int(np.prod(f["shape"])) for f in feats.values())
+    row_bytes = sum(
+        (8 if f["dtype"] == "int64" else 4) * int(np.prod(f["shape"])) for f in feats.values() if f["dtype"] != "image"
+    )
+    row_bytes += sum(len(a.images[c["name"]][0]) for c in cameras for a in attempts[:1])  # a frame's PNG
     frames_per_file = max(1, int(data_files_size_in_mb * 2**20 / row_bytes))
 
     tmp = root.with_name(root.name + ".partial")
@@ -250,7 +289,8 @@ def write_dataset(
                 "hitl/takeovers": json.dumps({str(k): v.as_dict() for k, v in a.takeovers.items()}),
             }
             for name, values in cols.items():
-                for stat, v in feature_stats(values).items():
+                stats_of = image_stats if feats[name]["dtype"] == "image" else feature_stats
+                for stat, v in stats_of(values).items():
                     row[f"stats/{name}/{stat}"] = v
             episodes_rows.append(row)
             start += len(a)
@@ -263,7 +303,12 @@ def write_dataset(
         pd.DataFrame({"task_index": range(len(task_strings))}, index=pd.Index(task_strings, name="task")).to_parquet(
             tmp / TASKS_PATH
         )
-        stats = {name: feature_stats(np.concatenate(v)) for name, v in all_columns.items()}
+        stats = {
+            name: image_stats([b for part in v for b in part])
+            if feats[name]["dtype"] == "image"
+            else feature_stats(np.concatenate(v))
+            for name, v in all_columns.items()
+        }
         (tmp / STATS_PATH).write_text(json.dumps(stats, indent=2))
         info = {
             "codebase_version": CODEBASE_VERSION,

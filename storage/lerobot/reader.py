@@ -8,6 +8,12 @@ names in the same order when the dataset names them) and its ``action`` our abso
 ``eef_rot6d``). ``next.success``, ``action_source`` and ``observation.gripper`` are used when present.
 An incompatible dataset is refused before anything is written, with every mismatched feature named, and
 where the dataset names its channels, the channels it lacks or has beyond the task's.
+
+For a policy that sees cameras (``cameras``: the task's), each camera's frames come from the image
+feature ``observation.images.<camera>`` (LeRobot's ``image`` dtype: PNG or JPEG bytes in the parquet) of
+the camera's size; a video feature, a missing camera or another size is refused by name, an image the
+dataset holds for a camera the task does not declare is left out. Frames that cannot be decoded are
+refused before any episode is written.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from tqdm import tqdm
 
 from storage import keys
 from storage.episodes import EpisodeWriter
+from storage.images import ImageDecodeError, decode_png_bytes
 from storage.lerobot.layout import (
     ACTION,
     CODEBASE_VERSION,
@@ -86,13 +93,34 @@ def _names(feature: dict) -> list[str] | None:
     return [str(n) for n in names] if isinstance(names, list) else None
 
 
+def image_features(info: dict) -> list[str]:
+    """The dataset's camera features (``observation.images.*``, image or video), by name."""
+    return [k for k, f in info["features"].items() if isinstance(f, dict) and f.get("dtype") in ("image", "video")]
+
+
 def check_compatible(
-    info: dict, obs_labels: list[str], action_labels: list[str], can_compute_pose: bool = False
+    info: dict,
+    obs_labels: list[str],
+    action_labels: list[str],
+    can_compute_pose: bool = False,
+    cameras: list[dict] | tuple[dict, ...] = (),
 ) -> list[str]:
     """Every way the dataset's state and action layout differs from the task's (empty: compatible): a
     feature's size, and where the dataset names its channels, those it lacks, those the task does not
-    have and a different order, by name."""
+    have and a different order, by name; for each camera in ``cameras`` (name, size), its image feature."""
     feats, problems = info["features"], []
+    for cam in cameras:
+        name, size = keys.image_key(cam["name"]), int(cam["size"])
+        f = feats.get(name)
+        if f is None:
+            have = ", ".join(image_features(info)) or "none"
+            problems.append(f"{name}: missing (the policy sees {cam['name']!r}; the dataset's cameras: {have})")
+        elif f.get("dtype") == "video":
+            problems.append(f"{name}: a video feature; this importer reads image features (LeRobot's use_videos=False)")
+        elif f.get("dtype") != "image":
+            problems.append(f"{name}: dtype {f.get('dtype')!r}, expected 'image'")
+        elif _shape(f)[:2] != [size, size] or _shape(f)[2:] not in ([3], []):
+            problems.append(f"{name}: shape {_shape(f)}, the task renders {cam['name']!r} at [{size}, {size}, 3]")
     for name, labels in ((STATE, obs_labels), (ACTION, action_labels)):
         f = feats.get(name)
         if f is None:
@@ -127,13 +155,14 @@ def import_dataset(
     pose_from_state: Callable[[np.ndarray], np.ndarray] | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    cameras: list[dict] | tuple[dict, ...] = (),
 ) -> ImportReport:
     """Writes every episode of the dataset at ``root`` as an MCAP demonstration in ``out``.
     pose_from_state: (T, obs_dim) states -> (T, 7) end-effector poses, for a dataset without
-    ``observation.ee_pose``."""
+    ``observation.ee_pose``; cameras: the task's (``CameraSpec.to_json``), for a policy that sees them."""
     root, out = Path(root), Path(out)
     info = read_info(root)
-    if problems := check_compatible(info, obs_labels, action_labels, pose_from_state is not None):
+    if problems := check_compatible(info, obs_labels, action_labels, pose_from_state is not None, cameras):
         raise LeRobotImportError(f"{root} does not fit task {task}:\n  " + "\n  ".join(problems))
     files = sorted((root / "data").glob("chunk-*/file-*.parquet"))
     if not files:
@@ -144,11 +173,20 @@ def import_dataset(
     wanted = [
         c for c in (STATE, ACTION, EE_POSE, GRIPPER, SUCCESS, SOURCE, "episode_index", "frame_index") if c in feats
     ]
+    wanted += [keys.image_key(c["name"]) for c in cameras]
     try:
         tables = [pq.read_table(f, columns=wanted) for f in files]
     except Exception as exc:  # noqa: BLE001 - pyarrow raises several types for a broken file
         raise LeRobotImportError(f"{root}: unreadable data file ({type(exc).__name__}: {exc})") from exc
     columns = {c: np.concatenate([_column(t, c) for t in tables]) for c in wanted}
+    for cam in cameras:  # decoded before any episode is written: a broken frame refuses the dataset
+        name, size = keys.image_key(cam["name"]), (int(cam["size"]),) * 2
+        try:
+            columns[name] = np.stack(
+                [decode_png_bytes((cell or {}).get("bytes") or b"", size) for cell in columns[name]]
+            )
+        except ImageDecodeError as exc:
+            raise LeRobotImportError(f"{root}: {name}: {exc}") from exc
     order = np.lexsort((columns["frame_index"], columns["episode_index"]))
     columns = {c: v[order] for c, v in columns.items()}
     episode = columns["episode_index"].astype(np.int64)
@@ -186,10 +224,19 @@ def import_dataset(
             "lerobot": {"dataset": root.name, "episode_index": idx, "fps": info["fps"]},
         }
         path = out / f"{task}_lerobot{idx:06d}.mcap"
-        with EpisodeWriter(path, meta) as writer:
+        with EpisodeWriter(path, meta, cameras=list(cameras)) as writer:
             for t in range(e - s):
+                images = {c["name"]: columns[keys.image_key(c["name"])][s + t] for c in cameras}
                 writer.write_step(
-                    t, state[t], action[t], pose[t, :3], pose[t, 3:], float(gripper[t]), bool(success[t]), sources[t]
+                    t,
+                    state[t],
+                    action[t],
+                    pose[t, :3],
+                    pose[t, 3:],
+                    float(gripper[t]),
+                    bool(success[t]),
+                    sources[t],
+                    images=images,
                 )
             won = bool(success.any())
             writer.finish(won, e - s, "success" if won else "horizon")

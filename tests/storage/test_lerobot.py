@@ -298,3 +298,75 @@ def test_non_finite_values_are_refused_before_any_episode_is_written(folder, tmp
     with pytest.raises(LeRobotImportError, match=r"episode\(s\) \[2\] have non-finite"):
         _import(root, tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def _seeing_folder(out: Path, episodes=(4, 6)) -> tuple[Path, dict]:
+    """Demonstrations recorded for a policy that sees (the robot's own state and lift's two cameras)."""
+    task = make_task(TASK, images=True)
+    cams = [c.to_json() for c in task.cameras]
+    shown = {}
+    for e, steps in enumerate(episodes):
+        rng = np.random.default_rng(e)
+        meta = {"task": TASK, "seed": e, "obs_labels": task.obs_spec.labels(), "action_labels": list(ACTION_LABELS)}
+        with EpisodeWriter(out / f"{TASK}_seed{e:06d}.mcap", meta, cameras=cams) as w:
+            for t in range(steps):
+                act = np.r_[rng.uniform([-0.1, -0.1, 0.85], [0.1, 0.1, 1.0]), [0, 1, 0, 1, 0, 0], [-1.0]]
+                images = {c["name"]: rng.integers(0, 256, (84, 84, 3), dtype=np.uint8) for c in cams}
+                shown[(e, t)] = images
+                w.write_step(
+                    t, rng.normal(size=task.obs_spec.dim), act, act[:3], [0, 0, 0, 1.0], 0.04, False, images=images
+                )
+            w.finish(True, steps, "success")
+    return out, shown
+
+
+def test_frames_a_policy_saw_export_as_lerobot_image_features_and_import_back(tmp_path):
+    folder, shown = _seeing_folder(tmp_path / "demos")
+    root = tmp_path / "ds"
+    write_dataset(from_folder(folder), root, FPS, list(ACTION_LABELS), progress=False)
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert info["features"]["observation.images.front"] == {
+        "dtype": "image",
+        "shape": [84, 84, 3],
+        "names": ["height", "width", "channels"],
+    }
+    stats = json.loads((root / "meta" / "stats.json").read_text())["observation.images.wrist"]
+    assert np.asarray(stats["mean"]).shape == (3, 1, 1) and 0.4 < np.asarray(stats["mean"]).mean() < 0.6
+    ds = _load(root).cast_column("observation.images.front", datasets.Image())  # as LeRobot casts it
+    row = ds[5]  # the second episode's second frame
+    assert (row["episode_index"], row["frame_index"]) == (1, 1)
+    np.testing.assert_array_equal(np.asarray(row["observation.images.front"]), shown[(1, 1)]["front"])
+    task = make_task(TASK, images=True)
+    cams = [c.to_json() for c in task.cameras]
+    spec = task.obs_spec
+    args = (root, tmp_path / "back", TASK, spec.labels(), list(ACTION_LABELS))
+    report = import_dataset(*args, pose_from_state=spec.ee_pose, progress=False, cameras=cams)
+    assert (report.episodes, report.frames) == (2, 10)
+    back = read_episode(sorted((tmp_path / "back").glob("*.mcap"))[1])
+    np.testing.assert_array_equal(back.frames("wrist")[3], shown[(1, 3)]["wrist"])
+
+
+def test_a_foreign_image_dataset_that_does_not_fit_is_refused_naming_each_camera(tmp_path):
+    folder, _ = _seeing_folder(tmp_path / "demos", episodes=(3,))
+    root = tmp_path / "ds"
+    write_dataset(from_folder(folder), root, FPS, list(ACTION_LABELS), progress=False)
+    spec = make_task(TASK, images=True).obs_spec
+    args = (root, tmp_path / "back", TASK, spec.labels(), list(ACTION_LABELS))
+
+    def edit(info):
+        info["features"]["observation.images.wrist"]["dtype"] = "video"
+        info["features"]["observation.images.front"]["shape"] = [96, 96, 3]
+
+    _edit_info(root, edit)
+    cams = [
+        {"name": "front", "size": 84, "crop": 76},
+        {"name": "wrist", "size": 84, "crop": 76},
+        {"name": "side", "size": 84, "crop": 76},
+    ]
+    with pytest.raises(LeRobotImportError) as err:
+        import_dataset(*args, pose_from_state=spec.ee_pose, progress=False, cameras=cams)
+    text = str(err.value)
+    assert "observation.images.front: shape [96, 96, 3], the task renders 'front' at [84, 84, 3]" in text
+    assert "observation.images.wrist: a video feature" in text
+    assert "observation.images.side: missing (the policy sees 'side'" in text
+    assert not (tmp_path / "back").exists()
