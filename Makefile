@@ -7,7 +7,7 @@ EXTRAS ?= dev
 comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
-.PHONY: install osmesa demo test lint docs cameras-docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
+.PHONY: install osmesa demo test lint docs vision-lift cameras-docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
 	hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-hand-back-docs loop-cooldown-docs asking-dev-docs choice-dev-docs \
 	operator-dev-docs fleet-release-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs clean
@@ -288,6 +288,16 @@ asking-dev-docs: install
 # docs/benchmarks/serving.md, "This release's fleet rate": 16 robots on pool workers, the loop's CPU split into the
 # policy, each signal and the loop's own, beside the previous release's figure (fleet.json) (about 2 min)
 # docs/policy.md, "The cameras a policy sees": what rendering them costs per step, and what they show
+# The policies that see, as the paper's: demonstrations with the task's cameras' frames (the robot's own state
+# as the rest of the observation), an image-conditioned policy trained on them, its calibration, and its sanity
+# checks (docs/results/policy/vision-sanity.json). Lift-cube: 120 demonstrations (about 10,000 steps, the
+# paper's 9,666), 20,000 steps of 64 samples (about 45 min on 2 cores).
+vision-lift: install
+	$(BIN)/hitl demos --task lift-cube --episodes 120 --pos-noise 0.01 --rot-noise 0.15 --images --workers 2 --out data/demos/lift-cube-vision --quiet
+	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-vision --out runs/lift-cube-vision --steps 20000 --batch-size 64 \
+		--lr 5e-4 --obs-fourier-octaves 0 --threads 2 --quiet
+	$(BIN)/hitl calibrate --policy runs/lift-cube-vision --data data/demos/lift-cube-vision --quiet
+
 cameras-docs: install
 	$(BIN)/hitl bench cameras --steps 60 --figure docs/figures/policy-cameras.png --out docs/results/sim/cameras.json --quiet > /dev/null
 

@@ -16,7 +16,10 @@ For each fleet size N, measured in the same run:
   arrival at the fleet to the tick that sends it to the worker);
 - the fleet's share of the raw throughput.
 
-The policy and uncertainty are the real ones (the bundled policy of each task).
+The policy and uncertainty are the real ones (the bundled policy of each task, or ``policy``; ``signal``:
+the asking signal, default the fleet's). For a policy that sees cameras the raw processes render its
+task's cameras after every step too (``Task.images``), so the raw rate counts what the fleet's workers
+must do, and the control loop's CPU is split further into the cameras' encoders (``encode``).
 """
 
 from __future__ import annotations
@@ -33,10 +36,11 @@ import numpy as np
 from tqdm import tqdm
 
 from bench.procstats import descendant_pids, memory_mb, processes_cpu_seconds, worker_pids
+from policy.checkpoint import read_info
 from server.db import make_engine, migrate, session_factory
 from server.errors import ServiceError
 from server.fleet.fleet import Fleet
-from server.settings import RobotGroup, Settings
+from server.settings import RobotGroup, Settings, bundled_policy
 from server.workers import WORKERS
 from sim.spaces import TeleopCommand
 
@@ -44,16 +48,20 @@ GOAL_SHARE_OF_RAW_AT_16 = 0.7  # fleet env steps/s against raw physics at 16 rob
 GOAL_SERVER_MB_PER_ROBOT = 5.0  # the server's resident memory growth per added robot
 
 
-def _raw_worker(task_name: str, seconds: float, start, out) -> None:
+def _raw_worker(task_name: str, seconds: float, start, out, images: bool = False) -> None:
     from sim.registry import make_task
 
-    task = make_task(task_name)
+    task = make_task(task_name, images=images)
     task.reset(0)
     task.step(task.hold_action())  # compile / warm up before the clock starts
+    if images:
+        task.images()
     start.wait()
     n, t_end = 0, time.monotonic() + seconds
     while time.monotonic() < t_end:
         r = task.step(task.hold_action())
+        if images:  # what a worker of a policy that sees renders at every step
+            task.images()
         n += 1
         if r.done:
             task.reset(n)
@@ -61,11 +69,12 @@ def _raw_worker(task_name: str, seconds: float, start, out) -> None:
     task.close()
 
 
-def raw_throughput(task: str, n: int, seconds: float) -> float:
-    """Total env steps/s of ``n`` bare processes stepping in parallel."""
+def raw_throughput(task: str, n: int, seconds: float, images: bool = False) -> float:
+    """Total env steps/s of ``n`` bare processes stepping in parallel (``images``: and rendering the
+    task's cameras at each step)."""
     ctx = mp.get_context("spawn")
     start, out = ctx.Event(), ctx.Queue()
-    procs = [ctx.Process(target=_raw_worker, args=(task, seconds, start, out), daemon=True) for _ in range(n)]
+    procs = [ctx.Process(target=_raw_worker, args=(task, seconds, start, out, images), daemon=True) for _ in range(n)]
     for p in procs:
         p.start()
     time.sleep(min(60.0, 3.0 + 1.5 * n))  # let every process build its simulator
@@ -100,17 +109,19 @@ def fleet_throughput(
     robots_per_process: int = 8,
     device: str = "cpu",
     inference: str = "local",
+    policy: Path | None = None,
+    signal: str | None = None,
 ) -> dict:
     settings = Settings(
         data_dir=data_dir,
         control_hz=0,
-        robots=[RobotGroup(task=task, count=n)],
+        robots=[RobotGroup(task=task, count=n, policy=policy)],
         queue={"lease_seconds": 3600},
         inference={"torch_threads": torch_threads, "device": device, "backend": inference},
         workers={"kind": worker, "robots_per_process": robots_per_process},
         # every other robot stays under the policy: the full per-step cost, all the time; with assistance
         # off, the operator keeps robot 0 until its episode ends
-        controller={"assistance": False, "hand_back": "continuous"},
+        controller={"assistance": False, "hand_back": "continuous"} | ({"signal": signal} if signal else {}),
     )
     migrate(settings.db_url)
     rss_before = memory_mb()["rss_mb"]
@@ -195,6 +206,7 @@ def fleet_throughput(
         # and the signals run in the actor, and the loop's own is all of the loop's CPU
         "asking_signal": asking,
         "policy_cpu_ms_per_env_step": parts.get("policy", 0.0) / max(steps, 1) * 1e3,
+        "encode_cpu_ms_per_env_step": parts.get("encode", 0.0) / max(steps, 1) * 1e3,  # a policy that sees
         "signals_cpu_ms_per_env_step": {n: parts.get(n, 0.0) / max(steps, 1) * 1e3 for n in signal_names},
         "loop_own_cpu_ms_per_env_step": (cpu - (sum(parts.values()) if inference == "local" else 0.0))
         / max(steps, 1)
@@ -323,20 +335,23 @@ def bench_fleet(
     robots_per_process: int = 8,
     device: str = "cpu",
     inference: tuple[str, ...] = ("local",),
+    policy: Path | None = None,
+    signal: str | None = None,
 ) -> dict:
     """For each size: raw physics, then the fleet on each worker back end with each inference back end
     (each in a fresh process; default workers: every back end that runs physics in processes of its own
     and is installed here). A row's ``backend`` names both."""
     workers = tuple(workers) if workers is not None else available_workers()
+    sees = bool(read_info(policy or bundled_policy(task))["policy"].get("cameras"))  # raw renders as its workers
     rows = []
     todo = [(n, w, i) for n in sizes for w in workers for i in inference]
     with tempfile.TemporaryDirectory() as tmp:
         raw = {}
         for n, worker, where in tqdm(todo, desc="bench fleet", disable=not progress):
             if n not in raw:
-                raw[n] = raw_throughput(task, n, seconds)
+                raw[n] = raw_throughput(task, n, seconds, sees)
             args = (task, n, seconds, Path(tmp) / f"n{n}-{worker}-{where}", torch_threads, command_hz)
-            fleet = _fleet_in_fresh_process(*args, worker, robots_per_process, device, where)
+            fleet = _fleet_in_fresh_process(*args, worker, robots_per_process, device, where, policy, signal)
             p99, target = fleet["command_latency_p99_ms"], fleet["latency_target_ms"]
             rows.append(
                 {
@@ -356,6 +371,8 @@ def bench_fleet(
     return {
         "benchmark": "fleet",
         "task": task,
+        "policy": str(policy) if policy is not None else None,
+        "sees_cameras": sees,
         "device": device,
         "seconds_per_measurement": seconds,
         "server_torch_threads": torch_threads,

@@ -134,6 +134,8 @@ def _cmd_bench_fleet(args: argparse.Namespace) -> int:
         robots_per_process=args.robots_per_process,
         device=args.device,
         inference=tuple(dict.fromkeys(args.inference)),
+        policy=args.policy,
+        signal=args.signal,
     )
     if before is not None:
         from bench.fleet import compare_with
@@ -376,6 +378,8 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         help="worker back ends (default: process, pool and, where Ray is installed, ray; side by side in one run)",
     )
     q.add_argument("--robots-per-process", type=int, default=8, help="pool back end (the setting)")
+    q.add_argument("--policy", type=Path, default=None, help="the policy folder the robots run (default: bundled)")
+    q.add_argument("--signal", default=None, help="the asking signal (default: the fleet's)")
     q.add_argument(
         "--inference",
         nargs="+",
