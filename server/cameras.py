@@ -21,6 +21,12 @@ whose own views fail (its state does not fit its task's model) says why, and the
 ``osmesa`` by default) is set as both ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` in its environment (the
 fleet's own process sets ``MUJOCO_GL`` for robosuite, which would otherwise leak into it).
 
+**A policy that sees.** Where a robot's frames carry its policy's own images of the console's cameras
+(``RobotFrame.images``: a policy that sees front and wrist, as lift's), the console shows those, scaled up
+for the eye (nearest pixel, square): the operator sees exactly what the policy saw, and nothing is rendered
+twice. Other robots (state-based policies, or a policy whose cameras are not the console's) are rendered
+as above.
+
 **Recording.** Each view rendered while the robot is under teleop goes to ``on_images``: the fleet writes
 it into the open takeover segment (``foxglove.CompressedImage``, ``storage.segments``), so a segment
 carries the frames its operator saw.
@@ -28,6 +34,7 @@ carries the frames its operator saw.
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import select
@@ -171,9 +178,14 @@ class CameraFeed:
                 task, frame = self.frame_of(rid)
             except Exception:  # noqa: BLE001 - a robot that went away
                 continue
-            if frame is None or frame.qpos is None or done.get(rid) is frame:
+            if frame is None or done.get(rid) is frame:
                 continue
-            images, error = self._render(rid, task, frame)
+            if all(name in frame.images for name in CAMERAS):
+                images, error = self._policy_views(rid, frame), None
+            elif frame.qpos is None:
+                continue
+            else:
+                images, error = self._render(rid, task, frame)
             with self._lock:
                 self._frames[rid] = frame  # rendered or not, this frame is not tried again
                 if error is not None:
@@ -256,6 +268,19 @@ class CameraFeed:
                 raise RuntimeError(f"the renderer stopped (exit code {code})")
             out += chunk
         return bytes(out)
+
+    def _policy_views(self, robot_id: int, frame: RobotFrame) -> CameraImages:
+        """The policy's own frames of the console's cameras, as JPEG views ``size[1]`` pixels square."""
+        from PIL import Image
+
+        side = self.size[1]
+        images = {}
+        for name in CAMERAS:
+            buf = io.BytesIO()
+            image = Image.fromarray(frame.images[name], "RGB").resize((side, side), Image.Resampling.NEAREST)
+            image.save(buf, format="JPEG", quality=self.quality)
+            images[name] = buf.getvalue()
+        return CameraImages(robot_id, frame.t, frame.clock, images, side, side, time.time())
 
     def _render(self, robot_id: int, task: str, frame: RobotFrame) -> tuple[CameraImages | None, str | None]:
         """(views, None), or (None, why) when this request failed and the renderer goes on; raises when the

@@ -68,6 +68,21 @@ def test_a_watched_robot_is_rendered_from_its_frame_and_each_new_frame_once(fram
         feed.close()
 
 
+def test_a_policy_that_sees_shows_the_operator_its_own_frames_rendered_once(frames):
+    policy_frames = {"front": np.zeros((84, 84, 3), np.uint8), "wrist": np.full((84, 84, 3), 200, np.uint8)}
+    policy_frames["front"][:42] = 255  # its top half white: what the policy saw, not a render of the scene
+    seeing = dataclasses.replace(frames[0], images=policy_frames)
+    feed = CameraFeed(lambda rid: ("lift-cube", seeing), hz=20.0, size=(96, 72))
+    try:
+        views = wait_for(lambda: feed.view(0).images, timeout=180)
+        front, wrist = _rgb(views.images["front"]), _rgb(views.images["wrist"])
+        assert front.shape == (72, 72, 3) and (views.width, views.height) == (72, 72)
+        assert front[:30].mean() > 240 and front[42:].mean() < 15  # the policy's frame, scaled up
+        assert abs(wrist.mean() - 200) < 5
+    finally:
+        feed.close()
+
+
 def test_the_views_show_the_drawers_cabinet_where_the_frame_placed_it():
     """The cabinet has no joint (``RobotFrame.placed``): the renderer moves it as the frame says."""
     task = make_task("open-drawer")
