@@ -47,7 +47,7 @@ def _fleet(tmp_path, threshold=-1.0, horizon=1000, count=1, factory=None, succes
     migrate(s.db_url)
     made = []
 
-    def make(robot_id, task):
+    def make(robot_id, task, images=False):
         made.append(Recorded(KinematicTask(horizon, success_z)))
         return made[-1]
 
