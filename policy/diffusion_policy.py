@@ -147,8 +147,12 @@ class DiffusionPolicy(nn.Module):
         return self.action_normalizer.normalize(action)
 
     def frame_obs(self, obs: torch.Tensor) -> torch.Tensor:
-        """(B, H, obs_dim) raw world -> what the network is fed before normalization."""
-        return obs if self.frame is None else self.frame.observation(obs)
+        """(B, H, obs_dim) raw world -> what the network is fed before normalization ((B, H, seen_dim) seen:
+        the state turned, the image features as they are)."""
+        if self.frame is None:
+            return obs
+        d = self.config.obs_dim
+        return torch.cat([self.frame.observation(obs[..., :d]), obs[..., d:]], dim=-1)
 
     def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
         """(B, H, obs_dim) raw -> the normalized observation the network sees (in its frame); for a policy
@@ -156,7 +160,7 @@ class DiffusionPolicy(nn.Module):
         features as they are."""
         obs = torch.as_tensor(obs, dtype=torch.float32)
         d = self.config.obs_dim
-        state = self.obs_normalizer.normalize(self.frame_obs(obs[..., :d]))
+        state = self.obs_normalizer.normalize(self.frame_obs(obs)[..., :d])
         return torch.cat([state, obs[..., d:]], dim=-1) if self.image_encoder is not None else state
 
     def encode_observation(

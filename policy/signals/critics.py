@@ -99,7 +99,7 @@ class ThriftySignal(_ModelSignal):
     def __init__(self, policy, config=None) -> None:
         super().__init__(policy, config)
         cfg, pc = self.config, policy.config
-        f = pc.obs_dim * pc.obs_horizon
+        f = self.policy.seen_dim * pc.obs_horizon  # what the policy sees: its state, and its cameras' features
         self.ensemble = EnsembleMLP(cfg.members, f, pc.action_horizon * pc.action_dim, cfg.hidden)
         self.q = EnsembleMLP(2, f + pc.action_dim, 1, cfg.hidden)
         self._fitted = False
@@ -235,7 +235,9 @@ class HulaSignal(_ModelSignal):
     def __init__(self, policy, config=None) -> None:
         super().__init__(policy, config)
         pc = policy.config
-        self.critic = EnsembleMLP(self.config.heads, pc.obs_dim * pc.obs_horizon + pc.action_dim, 1, self.config.hidden)
+        self.critic = EnsembleMLP(
+            self.config.heads, self.policy.seen_dim * pc.obs_horizon + pc.action_dim, 1, self.config.hidden
+        )
         self._fitted = False
 
     def fit(self, data: CalibrationData, steps: int | None = None, progress: bool = True) -> dict:

@@ -129,23 +129,24 @@ def observation_novelty(normalized: torch.Tensor) -> torch.Tensor:
 
 def demonstrations_range(policy, obs: np.ndarray | torch.Tensor) -> dict[str, list[float]]:
     """The box of ``obs`` (M, H, obs_dim) raw demonstrations in the policy's network frame, as the
-    policy's own normalizer fits its training data (``MinMaxNormalizer.fit``): {"low", "span"}."""
+    policy's own normalizer fits its training data (``MinMaxNormalizer.fit``): {"low", "span"}. For a
+    policy that sees, ``obs`` is seen (M, H, seen_dim): the box spans its cameras' features too."""
     obs_t = torch.as_tensor(np.asarray(obs), dtype=torch.float32)
     if len(obs_t) == 0:
         raise SignalError("spread: no demonstrations to take the observation range from")
-    box = MinMaxNormalizer(policy.config.obs_dim).fit(policy.frame_obs(obs_t))
+    box = MinMaxNormalizer(obs_t.shape[-1]).fit(policy.frame_obs(obs_t))
     return {"low": box.low.tolist(), "span": box.span.tolist()}
 
 
 def novelty_against(policy, obs: torch.Tensor, box: dict | None) -> torch.Tensor:
     """(B,) ``observation_novelty`` of ``obs`` (B, H, obs_dim) raw against ``box``
     (``demonstrations_range``), or against the policy's observation normalizer when None."""
-    if box is None:
-        return observation_novelty(policy.normalize_obs(obs))
+    if box is None:  # the state's own range (a seeing policy's features have none in its normalizer)
+        return observation_novelty(policy.normalize_obs(obs)[..., : policy.config.obs_dim])
     low = torch.as_tensor(box["low"], dtype=torch.float32)
     span = torch.as_tensor(box["span"], dtype=torch.float32)
-    if low.shape != (policy.config.obs_dim,) or span.shape != low.shape or not bool((span > 0).all()):
-        raise SignalError(f"spread: novelty_range needs {policy.config.obs_dim} lows and positive spans")
+    if low.shape != (policy.seen_dim,) or span.shape != low.shape or not bool((span > 0).all()):
+        raise SignalError(f"spread: novelty_range needs {policy.seen_dim} lows and positive spans")
     framed = policy.frame_obs(torch.as_tensor(obs, dtype=torch.float32))
     return observation_novelty((framed - low.to(framed.device)) / span.to(framed.device))
 

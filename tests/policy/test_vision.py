@@ -156,3 +156,17 @@ def test_a_frame_without_the_policys_cameras_is_refused_clearly():
     frame = _frame(np.random.default_rng(0), cameras=CAMS[:1])
     with pytest.raises(ValueError, match=r"camera\(s\) \['wrist'\].*images=True"):
         ctl.step({0: frame})
+
+
+def test_the_novelty_box_of_a_seeing_policy_spans_its_cameras_features():
+    from policy.signals.spread import demonstrations_range, novelty_against
+
+    p = tiny_seeing_policy()
+    with torch.no_grad():
+        seen = p.encode_observation(torch.randn(32, 1, ROBOT_OBS.dim), _images(32))
+        box = demonstrations_range(p, seen)
+        assert len(box["low"]) == p.seen_dim
+        inside = novelty_against(p, seen, box)
+        shifted = seen.clone()
+        shifted[..., ROBOT_OBS.dim :] += 10.0  # the same state, cameras that show something else
+    assert float(inside.max()) == 0.0 and bool((novelty_against(p, shifted, box) > 0).all())
