@@ -290,13 +290,22 @@ asking-dev-docs: install
 # docs/policy.md, "The cameras a policy sees": what rendering them costs per step, and what they show
 # The policies that see, as the paper's: demonstrations with the task's cameras' frames (the robot's own state
 # as the rest of the observation), an image-conditioned policy trained on them, its calibration, and its sanity
-# checks (docs/results/policy/vision-sanity.json). Lift-cube: 120 demonstrations (about 10,000 steps, the
-# paper's 9,666), 20,000 steps of 64 samples (about 45 min on 2 cores).
+# checks, where U peaks on lift-hammer, the paper's metric's separation of shifted states and the fleet's cost at
+# 16 robots (docs/results/policy/vision-sanity.md, lift-hammer-uncertainty-vision.json, signals/separation-lift-vision.json,
+# serving/fleet-vision.json, figures/vision/). Lift-cube: 120 demonstrations (about 10,000 steps, the
+# paper's 9,666), 20,000 steps of 64 samples (59 min measured on 2 cores, shared with other work;
+# about 40 min alone), then about 17 min of checks.
 vision-lift: install
 	$(BIN)/hitl demos --task lift-cube --episodes 120 --pos-noise 0.01 --rot-noise 0.15 --images --workers 2 --out data/demos/lift-cube-vision --quiet
 	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-vision --out runs/lift-cube-vision --steps 20000 --batch-size 64 \
 		--lr 5e-4 --obs-fourier-octaves 0 --threads 2 --quiet
 	$(BIN)/hitl calibrate --policy runs/lift-cube-vision --data data/demos/lift-cube-vision --quiet
+	$(BIN)/hitl report sanity --lift runs/lift-cube-vision --out docs/results/policy/vision-sanity.md --threads 2 --quiet
+	$(BIN)/hitl report separation --policy runs/lift-cube-vision --signals denoising --out docs/results/signals/separation-lift-vision.json --quiet
+	$(BIN)/hitl plot uncertainty --policy runs/lift-cube-vision --task lift-hammer --episodes 8 --out docs/figures/vision \
+		--report docs/results/policy/lift-hammer-uncertainty-vision.json --quiet
+	$(BIN)/hitl bench fleet --robots 16 --seconds 15 --worker pool --policy runs/lift-cube-vision --signal denoising \
+		--out docs/results/serving/fleet-vision.json --quiet
 
 # The cup-stacking and drawer policies that see, on the paper's sample counts (cup: 200 demonstrations, about
 # 44,600 steps, the paper's 41,670; drawer: 390, about 33,600 of its successful ones): three cameras at 96 x 96

@@ -215,9 +215,8 @@ class JobRun:
                 self.report(f"job {self.id}: left out segment {name}: {why}")
             for seg in waiting:
                 self.report(f"job {self.id}: segment {Path(seg.path).name} waits for its episode to end")
-            files = [in_store(self.data_dir, s.path) for s in selected]
-            cameras = [c.name for c in pc.cameras]  # a policy that sees fine-tunes on the frames it saw
-            takeovers = load_takeovers(files, pc.obs_dim, cfg.selection, recorded(self.info), cameras)
+            files, seen = [in_store(self.data_dir, s.path) for s in selected], [c.name for c in pc.cameras]
+            takeovers = load_takeovers(files, pc.obs_dim, cfg.selection, recorded(self.info), seen)  # and its frames
             for name, why in takeovers.skipped.items():
                 self.report(f"job {self.id}: skipped segment {name}: {why}")
             fresh = takeovers.arrays(pc.obs_horizon, pc.action_horizon)

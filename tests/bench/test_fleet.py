@@ -85,3 +85,16 @@ def test_compare_puts_each_figure_beside_the_previous_releases_row():
     assert row["robots"] == 16 and row["env_steps_per_s"] == {"before": 223.0, "now": 140.0}
     assert row["loop_cpu_ms_per_env_step"] == {"before": 3.9, "now": 6.5}
     assert "loop_own_cpu_ms_per_env_step" not in row and row["signals"] == {}
+
+
+def test_a_fleet_of_a_seeing_policy_reports_its_encoders_share_and_raw_counts_rendering(tmp_path):
+    from bench.fleet import raw_throughput
+    from tests.server.fleet.test_fleet_vision import _seeing_policy_folder
+
+    policy = _seeing_policy_folder(tmp_path / "eyes")
+    out = fleet_throughput(
+        "lift-cube", 2, 2.0, tmp_path / "var", worker="pool", robots_per_process=2, policy=policy, signal="denoising"
+    )
+    assert out["env_steps_per_s"] > 0 and out["encode_cpu_ms_per_env_step"] > 0
+    assert out["asking_signal"] == "denoising"
+    assert raw_throughput("lift-cube", 1, 1.0, images=True) > 0  # its processes render the task's cameras
