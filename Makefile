@@ -293,8 +293,8 @@ asking-dev-docs: install
 # checks, where U peaks on lift-hammer, the paper's metric's separation of shifted states and the fleet's cost at
 # 16 robots (docs/results/policy/vision-sanity.md, lift-hammer-uncertainty-vision.json, signals/separation-lift-vision.json,
 # serving/fleet-vision.json, figures/vision/). Lift-cube: 120 demonstrations (about 10,000 steps, the
-# paper's 9,666), 20,000 steps of 64 samples (59 min measured on 2 cores, shared with other work;
-# about 40 min alone), then about 17 min of checks.
+# paper's 9,666), 20,000 steps of 64 samples (59 min measured on 2 cores, shared with other work),
+# then about 17 min of checks.
 vision-lift: install
 	$(BIN)/hitl demos --task lift-cube --episodes 120 --pos-noise 0.01 --rot-noise 0.15 --images --workers 2 --out data/demos/lift-cube-vision --quiet
 	$(BIN)/hitl train --task lift-cube --data data/demos/lift-cube-vision --out runs/lift-cube-vision --steps 20000 --batch-size 64 \

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.registry import make_expert, make_task
-from sim.vision import POLICY_CAMERAS, PolicyCameras
+from sim.vision import PolicyCameras
 
 TASKS = ("lift-cube", "lift-hammer", "cup-stack", "open-drawer")
 
@@ -30,30 +30,6 @@ class CameraBench:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
 
 
-class _DefaultCameras:
-    """The same cameras with MuJoCo's defaults: the visual meshes, multisampling, reflections."""
-
-    def __init__(self, model, specs) -> None:
-        import mujoco
-
-        self.specs, self.option = specs, mujoco.MjvOption()
-        self.option.geomgroup[:] = 0
-        self.option.geomgroup[1] = 1  # robosuite's visual geoms, as the console's views draw them
-        self.renderers = {size: mujoco.Renderer(model, size, size) for size in {s.size for s in specs}}
-
-    def render(self, data) -> dict[str, np.ndarray]:
-        out = {}
-        for spec in self.specs:
-            r = self.renderers[spec.size]
-            r.update_scene(data, camera=POLICY_CAMERAS[spec.name], scene_option=self.option)
-            out[spec.name] = r.render().copy()
-        return out
-
-    def close(self) -> None:
-        for r in self.renderers.values():
-            r.close()
-
-
 def bench_cameras(plan: CameraBench, progress: bool = True) -> tuple[dict, dict[str, list[dict[str, np.ndarray]]]]:
     """Per task: ms per control step of rendering all its policy cameras both ways (median over the episode's
     steps), and the views at ``frames_at`` for the figure."""
@@ -65,7 +41,7 @@ def bench_cameras(plan: CameraBench, progress: bool = True) -> tuple[dict, dict[
         task.reset(plan.seed)
         expert.reset(task, np.random.default_rng([plan.seed, 2]))
         model, data = task.mj_model(), task.mj_data()
-        fast, default = PolicyCameras(model, task.cameras), _DefaultCameras(model, task.cameras)
+        fast, default = PolicyCameras(model, task.cameras), PolicyCameras(model, task.cameras, fast=False)
         at = {min(plan.steps - 1, int(share * plan.steps)) for share in plan.frames_at}
         times: dict[str, list[float]] = {"default": [], "served": []}
         views[name] = []

@@ -230,9 +230,7 @@ class DiffusionPolicy(nn.Module):
             images = {
                 c.name: batch[keys.image_key(c.name)] for c in self.config.cameras if keys.image_key(c.name) in batch
             }
-            crops = generator if self.training and generator is not None else None
-            if self.training and crops is None:
-                crops = torch.Generator().manual_seed(0)
+            crops = (generator or torch.default_generator) if self.training else None  # random in training only
             obs = self.encode_observation(obs, images, crops)
         cond = self._obs_cond(obs)
         x0 = self._to_net_actions(batch[keys.ACTION].float(), batch[keys.OBS])

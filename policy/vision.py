@@ -73,7 +73,7 @@ def crop_frames(frames: torch.Tensor, crop: int, generator: torch.Generator | No
     if generator is None:
         lo = (size - crop) // 2
         return x[:, :, lo : lo + crop, lo : lo + crop]
-    off = torch.randint(0, size - crop + 1, (n, 2), generator=generator, device=frames.device)
+    off = torch.randint(0, size - crop + 1, (n, 2), generator=generator).to(frames.device)  # a CPU generator
     rows = (off[:, 0:1] + torch.arange(crop, device=frames.device))[:, None, :, None]  # (N, 1, crop, 1)
     cols = (off[:, 1:2] + torch.arange(crop, device=frames.device))[:, None, None, :]  # (N, 1, 1, crop)
     idx = torch.arange(n, device=frames.device)[:, None, None, None]

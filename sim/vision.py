@@ -89,13 +89,15 @@ def _visual_colour(m, g: int) -> np.ndarray:
 
 
 class PolicyCameras:
-    """A task's policy cameras: ``render(data)`` -> camera name -> (size, size, 3) uint8 RGB of that state."""
+    """A task's policy cameras: ``render(data)`` -> camera name -> (size, size, 3) uint8 RGB of that state.
+    ``fast``: drawn as served (``fast_model``, no reflections); False: with MuJoCo's defaults (the visual
+    meshes, multisampling, reflections), what ``hitl bench cameras`` compares against."""
 
-    def __init__(self, model, specs: tuple[CameraSpec, ...]) -> None:
+    def __init__(self, model, specs: tuple[CameraSpec, ...], fast: bool = True) -> None:
         import mujoco
 
         self.specs = tuple(specs)
-        self.model = fast_model(model)
+        self.model = fast_model(model) if fast else copy.deepcopy(model)
         camera = mujoco.mjtObj.mjOBJ_CAMERA
         missing = [s.name for s in self.specs if mujoco.mj_name2id(self.model, camera, POLICY_CAMERAS[s.name]) < 0]
         if missing:
@@ -107,7 +109,7 @@ class PolicyCameras:
         self.option.geomgroup[:] = 0
         self.option.geomgroup[VISUAL_GROUP] = 1
         self._renderers = {size: mujoco.Renderer(self.model, size, size) for size in {s.size for s in self.specs}}
-        for r in self._renderers.values():
+        for r in self._renderers.values() if fast else ():
             r.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0  # the scene keeps its flags across renders
 
     def render(self, data) -> dict[str, np.ndarray]:

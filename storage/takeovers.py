@@ -184,7 +184,7 @@ def load_takeovers(
             np.zeros(0, np.int64),
             used,
             skipped,
-        )  # no frames: nothing to train on
+        )
     return TakeoverSet(
         np.concatenate(obs),
         np.concatenate(act),
