@@ -7,7 +7,7 @@ EXTRAS ?= dev
 comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
-.PHONY: install osmesa demo test lint docs vision-lift vision-cup vision-drawer cameras-docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
+.PHONY: install osmesa demo test lint docs vision-lift vision-cup vision-drawer vision-bundle cameras-docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
 	hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-hand-back-docs loop-cooldown-docs asking-dev-docs choice-dev-docs \
 	operator-dev-docs fleet-release-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs clean
@@ -74,8 +74,8 @@ policy-docs: install
 	$(BIN)/hitl bench uncertainty --policy runs/lift-cube --task lift-hammer --threads 1 --quiet > docs/results/serving/uncertainty.json
 	for p in lift-cube cup-stack open-drawer; do for s in spread stall spread-stall choice-stall; do $(BIN)/hitl train-signal --policy runs/$$p \
 		--signal $$s --data data/demos/$$p-dart --quiet || exit 1; done; done
-	for p in lift-cube cup-stack open-drawer; do rm -rf policies/$$p && mkdir -p policies/$$p && cp runs/$$p/model.safetensors runs/$$p/config.json runs/$$p/calibration.json policies/$$p/ || exit 1; \
-		for s in spread stall spread-stall choice-stall; do mkdir -p policies/$$p/signals/$$s && cp runs/$$p/signals/$$s/config.json policies/$$p/signals/$$s/ || exit 1; done; done
+	for p in lift-cube cup-stack open-drawer; do rm -rf policies/state/$$p && mkdir -p policies/state/$$p && cp runs/$$p/model.safetensors runs/$$p/config.json runs/$$p/calibration.json policies/state/$$p/ || exit 1; \
+		for s in spread stall spread-stall choice-stall; do mkdir -p policies/state/$$p/signals/$$s && cp runs/$$p/signals/$$s/config.json policies/state/$$p/signals/$$s/ || exit 1; done; done
 
 # Regenerates docs/signals.md's inputs (docs/results/signals/): every assistance signal trained and calibrated next
 # to the lift policy (and a chunked lift policy for stac), an assisted comparison run, and the serving cost of the
@@ -107,7 +107,7 @@ BUNDLE := runs/bundle
 BUNDLE_BASELINES := output-variance diff-dagger thrifty hula-offline
 HITL_SIGNALS := choice-stall denoising spread-stall $(BUNDLE_BASELINES) stac random full-teleop
 hitl-docs: install
-	rm -rf $(BUNDLE) && mkdir -p $(BUNDLE) && cp -r policies/lift-cube policies/cup-stack policies/open-drawer $(BUNDLE)/
+	rm -rf $(BUNDLE) && mkdir -p $(BUNDLE) && cp -r policies/state/lift-cube policies/state/cup-stack policies/state/open-drawer $(BUNDLE)/
 	for p in lift-cube cup-stack open-drawer; do for s in $(BUNDLE_BASELINES); do $(BIN)/hitl train-signal \
 		--policy $(BUNDLE)/$$p --signal $$s --data data/demos/$$p-dart --threads 2 --quiet || exit 1; done; done
 	$(BIN)/hitl bench hitl --policy-root $(BUNDLE) --signals $(HITL_SIGNALS) --floor docs/results/hitl/floor-c1.json \
@@ -127,7 +127,7 @@ bench-docs: install
 		--tasks lift-hammer cup-stack open-drawer --false-alarm-task none --episodes 10 --quantiles 0.9 0.5 0.25 \
 		--signals $(ABLATIONS) --json --quiet > docs/results/hitl/ablations.json
 	$(BIN)/hitl bench hitl-service --task open-drawer --policy runs/open-drawer --signal spread --episodes 6 > docs/results/hitl/service.json
-	for p in lift-cube cup-stack open-drawer; do mkdir -p policies/$$p/signals/spread && cp runs/$$p/signals/spread/config.json policies/$$p/signals/spread/ || exit 1; done
+	for p in lift-cube cup-stack open-drawer; do mkdir -p policies/state/$$p/signals/spread && cp runs/$$p/signals/spread/config.json policies/state/$$p/signals/spread/ || exit 1; done
 
 # docs/spread.md, "How it was chosen": the development runs on seeds 2000-2007 (docs/results/hitl/dev/), the
 # commands recorded in each file's provenance (`--raw`, a scratch copy of every cell, left out). The first three ran
@@ -194,18 +194,18 @@ default-hitl-docs: install
 # its own calibration on the five problem tasks and lift-cube, then its settings varied on cup-stack and the drawer
 # (cells cached under runs/bench-hitl-dev-choice; about 10 min on 2 cores); and its cost beside the paper's metric.
 choice-dev-docs: install
-	for p in lift-cube cup-stack open-drawer; do $(BIN)/hitl train-signal --policy policies/$$p --signal choice-stall \
+	for p in lift-cube cup-stack open-drawer; do $(BIN)/hitl train-signal --policy policies/state/$$p --signal choice-stall \
 		--data data/demos/$$p-dart --quiet || exit 1; done
-	$(BIN)/hitl bench hitl --policy-root policies --tasks open-drawer cup-stack lift-nut lift-hammer lift-hook \
+	$(BIN)/hitl bench hitl --policy-root policies/state --tasks open-drawer cup-stack lift-nut lift-hammer lift-hook \
 		--false-alarm-task lift-cube --signals choice-stall full-teleop --no-sweep --episodes 8 --seed 2000 \
 		--reference-episodes 8 --cache runs/bench-hitl-dev-choice --jobs 2 --json --quiet > docs/results/hitl/dev/choice-stall.json
-	$(BIN)/hitl bench hitl --policy-root policies --tasks open-drawer cup-stack --false-alarm-task lift-cube \
+	$(BIN)/hitl bench hitl --policy-root policies/state --tasks open-drawer cup-stack --false-alarm-task lift-cube \
 		--signals choice-stall:stride_ratio=0.15 choice-stall:stride_ratio=0.2 choice-stall:return_ratio=0.25 --no-sweep \
 		--episodes 8 --seed 2000 --reference-episodes 8 --cache runs/bench-hitl-dev-choice --jobs 2 --json --quiet \
 		> docs/results/hitl/dev/choice-stall-settings.json
-	$(BIN)/hitl bench signals --policy policies/lift-cube --signals denoising,denoising:center=chunk,spread-stall,choice-stall --task lift-hammer \
+	$(BIN)/hitl bench signals --policy policies/state/lift-cube --signals denoising,denoising:center=chunk,spread-stall,choice-stall --task lift-hammer \
 		--quiet > docs/results/serving/signals-choice-stall.json
-	$(BIN)/hitl bench signals --policy policies/open-drawer --signals denoising,choice-stall --task open-drawer --quiet \
+	$(BIN)/hitl bench signals --policy policies/state/open-drawer --signals denoising,choice-stall --task open-drawer --quiet \
 		> docs/results/serving/signals-choice-stall-drawer.json
 
 # docs/benchmarks/hitl-method.md, "Do the cup-stack and drawer policies resume after a few operator steps?": one
@@ -213,24 +213,24 @@ choice-dev-docs: install
 # cup-stack policy's steps, then the bundled policy alone, development seeds 2000-2011 (about 45 min on 2 cores,
 # most of it cup-stack).
 resume-docs: install
-	$(BIN)/hitl report resume --policy policies/cup-stack --at 0 40 80 120 160 200 240 --budgets 4 16 --episodes 12 \
+	$(BIN)/hitl report resume --policy policies/state/cup-stack --at 0 40 80 120 160 200 240 --budgets 4 16 --episodes 12 \
 		--threads 2 --out docs/results/policy/resume-cup-stack.json --quiet
-	$(BIN)/hitl report resume --policy policies/open-drawer --at 0 5 10 --budgets 4 8 --episodes 12 \
+	$(BIN)/hitl report resume --policy policies/state/open-drawer --at 0 5 10 --budgets 4 8 --episodes 12 \
 		--threads 2 --out docs/results/policy/resume-open-drawer.json --quiet
 
 # docs/benchmarks/hitl-method.md, "Lift: finger rays": the bundled lift policy handed back with the open
 # gripper placed at each lift object's grasp, on 12 development episodes each (about 2 min on 2 cores).
 pregrasp-docs: install
-	$(BIN)/hitl report pregrasp --policy policies/lift-cube --tasks lift-cube lift-nut lift-hammer lift-hook \
+	$(BIN)/hitl report pregrasp --policy policies/state/lift-cube --tasks lift-cube lift-nut lift-hammer lift-hook \
 		--episodes 12 --seed 2000 --threads 2 --quiet --out docs/results/policy/pregrasp-lift.json
 
 # docs/benchmarks/hitl.md, "The floor": the oracle's fewest operator steps for 100% success (best-of-sweep), on the
 # bundled policies, with the simulated operator in carry-on style, and on cup-stack and the drawer with the operator
 # that replans at each request (before) (about 25 min on 2 cores).
 floor-docs: install
-	$(BIN)/hitl bench floor --policy-root policies --report docs/benchmarks/hitl.md --section floor-c1 \
+	$(BIN)/hitl bench floor --policy-root policies/state --report docs/benchmarks/hitl.md --section floor-c1 \
 		--cache runs/bench-floor --json --quiet > docs/results/hitl/floor-c1.json
-	$(BIN)/hitl bench floor --tasks cup-stack open-drawer --operator replan --policy-root policies --cache runs/bench-floor \
+	$(BIN)/hitl bench floor --tasks cup-stack open-drawer --operator replan --policy-root policies/state --cache runs/bench-floor \
 		--json --quiet > docs/results/hitl/floor-c1-replan.json
 
 # docs/benchmarks/nights.md: 3 days of the fleet of configs/nights.toml with the operator bot (10 minutes each) and 2
@@ -278,16 +278,13 @@ operators-figure: install
 # asking (spread-stall, continuous, cooldown 10) on development seeds, the watchdog at half and at 80% of the
 # horizon (about 3 min on 2 cores)
 asking-dev-docs: install
-	$(BIN)/hitl assist --policy policies/lift-cube --task lift-cube --driver spread-stall --mode continuous --cooldown 10 \
+	$(BIN)/hitl assist --policy policies/state/lift-cube --task lift-cube --driver spread-stall --mode continuous --cooldown 10 \
 		--watchdog 0.5 --hand-back-when-held --episodes 30 --seed 7000 --envs 2 --threads 2 --json --quiet \
 		> docs/results/nights/dev/lift-cube-asking-watchdog-0.5.json
-	$(BIN)/hitl assist --policy policies/lift-cube --task lift-cube --driver spread-stall --mode continuous --cooldown 10 \
+	$(BIN)/hitl assist --policy policies/state/lift-cube --task lift-cube --driver spread-stall --mode continuous --cooldown 10 \
 		--watchdog 0.8 --hand-back-when-held --episodes 30 --seed 8000 --envs 2 --threads 2 --json --quiet \
 		> docs/results/nights/dev/lift-cube-asking.json
 
-# docs/benchmarks/serving.md, "This release's fleet rate": 16 robots on pool workers, the loop's CPU split into the
-# policy, each signal and the loop's own, beside the previous release's figure (fleet.json) (about 2 min)
-# docs/policy.md, "The cameras a policy sees": what rendering them costs per step, and what they show
 # The policies that see, as the paper's: demonstrations with the task's cameras' frames (the robot's own state
 # as the rest of the observation), an image-conditioned policy trained on them, its calibration, and its sanity
 # checks, where U peaks on lift-hammer, the paper's metric's separation of shifted states and the fleet's cost at
@@ -309,22 +306,45 @@ vision-lift: install
 
 # The cup-stacking and drawer policies that see, on the paper's sample counts (cup: 200 demonstrations, about
 # 44,600 steps, the paper's 41,670; drawer: 390, about 33,600 of its successful ones): three cameras at 96 x 96
-# crops cost about 2.4x lift's per training step, so 10,000 steps of 64 samples fit the 45 minutes.
+# crops cost about 2.4x lift's per training step, so 10,000 steps of 64 samples (the drawer too); then each policy's sanity
+# checks and where U peaks (docs/results/policy/vision-sanity-{cup,drawer}.md, <task>-uncertainty-vision.json).
 vision-cup: install
 	$(BIN)/hitl demos --task cup-stack --episodes 200 --pos-noise 0.01 --rot-noise 0.15 --images --workers 2 --out data/demos/cup-stack-vision --quiet
 	$(BIN)/hitl train --task cup-stack --data data/demos/cup-stack-vision --out runs/cup-stack-vision --steps 10000 --batch-size 64 \
 		--lr 5e-4 --obs-fourier-octaves 0 --threads 2 --quiet
 	$(BIN)/hitl calibrate --policy runs/cup-stack-vision --data data/demos/cup-stack-vision --quiet
+	$(BIN)/hitl report sanity --cup runs/cup-stack-vision --out docs/results/policy/vision-sanity-cup.md --threads 2 --quiet
+	$(BIN)/hitl plot uncertainty --policy runs/cup-stack-vision --task cup-stack --episodes 4 --out docs/figures/vision \
+		--report docs/results/policy/cup-stack-uncertainty-vision.json --quiet
 
 vision-drawer: install
 	$(BIN)/hitl demos --task open-drawer --episodes 390 --pos-noise 0.01 --rot-noise 0.15 --images --workers 2 --out data/demos/open-drawer-vision --quiet
-	$(BIN)/hitl train --task open-drawer --data data/demos/open-drawer-vision --out runs/open-drawer-vision --steps 15000 --batch-size 64 \
+	$(BIN)/hitl train --task open-drawer --data data/demos/open-drawer-vision --out runs/open-drawer-vision --steps 10000 --batch-size 64 \
 		--lr 5e-4 --obs-fourier-octaves 0 --threads 2 --quiet
 	$(BIN)/hitl calibrate --policy runs/open-drawer-vision --data data/demos/open-drawer-vision --quiet
+	$(BIN)/hitl report sanity --drawer runs/open-drawer-vision --out docs/results/policy/vision-sanity-drawer.md --threads 2 --quiet
+	$(BIN)/hitl plot uncertainty --policy runs/open-drawer-vision --task open-drawer --episodes 8 --out docs/figures/vision \
+		--report docs/results/policy/open-drawer-uncertainty-vision.json --quiet
 
+# The bundled policies (policies/, what the demo, the fleet, `hitl bench hitl`, `hitl bench floor` and the nightly
+# job run): the three policies that see, from `make vision-lift vision-cup vision-drawer`, with the asking
+# signals calibrated next to them on their own validation demonstrations (a few minutes on 2 cores).
+# VISION_TASKS=lift-cube bundles one. The state-based policies stay in policies/state/ (`make policy-docs`).
+VISION_TASKS := lift-cube cup-stack open-drawer
+BUNDLED_SIGNALS := spread stall choice-stall
+vision-bundle: install
+	for p in $(VISION_TASKS); do for s in $(BUNDLED_SIGNALS); do $(BIN)/hitl train-signal --policy runs/$$p-vision --signal $$s \
+		--data data/demos/$$p-vision --quiet > /dev/null || exit 1; done; done
+	for p in $(VISION_TASKS); do rm -rf policies/$$p && mkdir -p policies/$$p && cp runs/$$p-vision/model.safetensors \
+		runs/$$p-vision/config.json runs/$$p-vision/calibration.json policies/$$p/ || exit 1; for s in $(BUNDLED_SIGNALS); do \
+		mkdir -p policies/$$p/signals/$$s && cp runs/$$p-vision/signals/$$s/config.json policies/$$p/signals/$$s/ || exit 1; done; done
+
+# docs/policy.md, "The cameras a policy sees": what rendering them costs per step, and what they show
 cameras-docs: install
 	$(BIN)/hitl bench cameras --steps 60 --figure docs/figures/policy-cameras.png --out docs/results/sim/cameras.json --quiet > /dev/null
 
+# docs/benchmarks/serving.md, "This release's fleet rate": 16 robots on pool workers, the loop's CPU split into the
+# policy, each signal and the loop's own, beside the previous release's figure (fleet.json) (about 2 min)
 fleet-release-docs: install
 	$(BIN)/hitl bench fleet --robots 16 --seconds 15 --worker pool --compare docs/results/serving/fleet.json \
 		--out docs/results/serving/fleet-release.json --quiet > /dev/null
@@ -346,7 +366,7 @@ fleet-inference-docs: install
 # 20 development seeds each (about 4 minutes on 2 cores)
 operator-dev-docs: install
 	for task in lift-nut lift-hammer lift-hook; do \
-		$(BIN)/hitl assist --policy policies/lift-cube --task $$task --driver spread-stall --mode continuous --cooldown 10 \
+		$(BIN)/hitl assist --policy policies/state/lift-cube --task $$task --driver spread-stall --mode continuous --cooldown 10 \
 			--watchdog 0.8 --hand-back-when-held --episodes 20 --seed 7000 --envs 2 --threads 1 --json --quiet \
 			> docs/results/nights/dev/$$task-operator.json || exit 1; \
 	done

@@ -337,7 +337,11 @@ def register_finetune(bench: argparse._SubParsersAction) -> None:
         description="every point starts from the same pretrained policy; results are cached per point under --cache",
     )
     q.add_argument("--quick", action="store_true", help="takeover:spread and full-trajectory, K = 50, 100, 10 episodes")
-    q.add_argument("--policy", default=None, help="default: policies/lift-cube (runs/lift-cube has every signal)")
+    q.add_argument(
+        "--policy",
+        default=None,
+        help="default: policies/state/lift-cube, the state-based lift policy (runs/lift-cube has every signal)",
+    )
     q.add_argument(
         "--sources",
         nargs="+",

@@ -48,7 +48,7 @@ HAND_BACKS = ("continuous", "budgeted", "operator")
 
 @dataclass(frozen=True)
 class FinetuneBenchConfig:
-    policy: str = "policies/lift-cube"
+    policy: str = "policies/state/lift-cube"  # its takeover samples are state and action, no frames
     train_task: str = "lift-cube"
     unseen: tuple[str, ...] = UNSEEN
     sources: tuple[str, ...] = ("takeover:spread", "takeover:denoising", "takeover:random", FULL)
@@ -348,6 +348,11 @@ def run_bench(cfg: FinetuneBenchConfig, cache: str | Path = "runs/bench-finetune
     parent, info = load_policy(cfg.policy)
     for task in dict.fromkeys([cfg.train_task, *cfg.unseen]):
         check_fits(info, task, cfg.policy)
+    if parent.config.cameras:
+        raise ValueError(
+            f"{cfg.policy} sees cameras: this benchmark's takeover samples hold the state and the action, not the "
+            "frames; fine-tune a policy that sees through the service's job (docs/finetune.md)"
+        )
     if cfg.stride > 1 and (parent.config.obs_horizon > 1 or parent.config.action_horizon > 1):
         raise ValueError(f"stride {cfg.stride} needs a policy with observation and action horizons of 1")
     pre_train = pretraining_split(parent, info, resolve(info["dataset"]["folder"])).train

@@ -9,6 +9,7 @@ import pytest
 
 from policy.checkpoint import CheckpointError, check_fits, layout_info, read_info, save_policy
 from policy.config import DiffusionPolicyConfig
+from sim.env import ROBOT_OBS
 from sim.registry import make_task
 from tests.helpers import tiny_policy
 
@@ -24,19 +25,41 @@ def _info(task: str, **config) -> dict:
     return {"policy": cfg.to_dict(), "task": task, **layout_info(spec)}
 
 
-def test_the_bundled_policies_record_their_tasks_layout_and_fit_what_they_serve():
-    serves = {"lift-cube": ["lift-cube", "lift-nut", "lift-hammer", "lift-hook"], "cup-stack": ["cup-stack"]}
-    serves["open-drawer"] = ["open-drawer"]
-    for name, tasks in serves.items():
+SERVES = {
+    "lift-cube": ["lift-cube", "lift-nut", "lift-hammer", "lift-hook"],
+    "cup-stack": ["cup-stack"],
+    "open-drawer": ["open-drawer"],
+}
+
+
+def test_the_bundled_policies_see_their_tasks_cameras_and_fit_what_they_serve():
+    for name, tasks in SERVES.items():
         info = read_info(ROOT / "policies" / name)
+        task = make_task(name, images=True)
+        assert info["obs_labels"] == task.obs_spec.labels() == ROBOT_OBS.labels()  # the robot's own state only
+        assert [c["name"] for c in info["policy"]["cameras"]] == [c.name for c in task.cameras]
+        for served in tasks:
+            check_fits(info, served, name)
+    with pytest.raises(CheckpointError) as err:
+        check_fits(read_info(ROOT / "policies" / "cup-stack"), "lift-cube", "policies/cup-stack")
+    assert str(err.value) == (
+        "policy policies/cup-stack cannot run task lift-cube: it sees camera 'side', which task lift-cube lacks "
+        "(it has front, wrist); it sees 'wrist' at 104 pixels, task lift-cube renders 84; "
+        "it sees 'front' at 104 pixels, task lift-cube renders 84"
+    )
+
+
+def test_the_state_based_policies_fit_their_tasks_state_and_are_refused_elsewhere_by_channel_name():
+    for name, tasks in SERVES.items():
+        info = read_info(ROOT / "policies" / "state" / name)
         assert info["obs_labels"] == make_task(name).obs_spec.labels()
         for task in tasks:
             check_fits(info, task, name)
     with pytest.raises(CheckpointError) as err:
-        check_fits(read_info(ROOT / "policies" / "cup-stack"), "lift-cube", "policies/cup-stack")
+        check_fits(read_info(ROOT / "policies" / "state" / "cup-stack"), "lift-cube", "policies/state/cup-stack")
     message = str(err.value)
     assert message.startswith(
-        "policy policies/cup-stack cannot run task lift-cube: it was trained on observations [eef_pos(3)"
+        "policy policies/state/cup-stack cannot run task lift-cube: it was trained on observations [eef_pos(3)"
     )
     assert "task lift-cube gives [eef_pos(3), eef_rot6d(6), gripper_qpos(2), object_pos(3)" in message
     assert (

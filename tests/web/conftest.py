@@ -33,7 +33,12 @@ lease_seconds = 20
 [[robots]]
 task = "lift-hammer"
 count = 1
+policy = "{policy}"
 """
+# The state-based lift policy: on lift-hammer its `choice-stall` asks in the episode's first steps, which these
+# tests of the console wait on; the bundled policy that sees did not ask again within their waits after a reset.
+# A seeing policy's frames in the console are tested in tests/server/test_cameras.py.
+POLICY = Path(__file__).resolve().parents[2] / "policies" / "state" / "lift-cube"
 
 
 class Served:
@@ -57,7 +62,7 @@ def served(tmp_path_factory):
     """``hitl serve`` in a subprocess; stopped (SIGTERM) when the module's tests are done."""
     root = tmp_path_factory.mktemp("served")
     config = root / "fleet.toml"
-    config.write_text(CONFIG.format(data=root / "var"))
+    config.write_text(CONFIG.format(data=root / "var", policy=POLICY))
     tokens = {}
     for role in ("operator", "viewer", "admin"):
         out = subprocess.run(
