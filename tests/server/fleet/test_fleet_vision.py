@@ -2,11 +2,13 @@
 controller encodes them, episodes and takeover segments record the frames, fine-tuning reads them back."""
 
 import numpy as np
+import pytest
 import torch
 
-from policy.checkpoint import layout_info, save_calibration, save_policy
+from policy.checkpoint import layout_info, load_policy, save_calibration, save_policy
 from policy.config import DiffusionPolicyConfig
 from policy.diffusion_policy import DiffusionPolicy
+from policy.finetune import FinetuneConfig, FinetuneDataError, finetune_policy
 from server.db import make_engine, migrate, session_factory
 from server.fleet.fleet import Fleet
 from server.settings import RobotGroup, Settings
@@ -75,6 +77,16 @@ def test_a_fleet_of_seeing_robots_renders_encodes_and_records_what_they_saw(tmp_
         assert frames.shape == (len(seg.steps), 84, 84, 3) and len(seg.steps) >= 3
         data = load_takeovers([segment], obs_dim=11, cameras=["front", "wrist"])
         assert data.images["front"].shape == (len(seg.steps), 84, 84, 3) and not data.skipped
+        # the nightly job's step: the policy fine-tunes on what its takeovers recorded, frames included
+        parent, _ = load_policy(policy)
+        arrays = data.arrays(1, 1)
+        cfg = FinetuneConfig(steps=2, batch_size=4, warmup_steps=1)
+        child, history = finetune_policy(parent, arrays, arrays, cfg, progress=False)
+        assert history["takeover_samples"] == len(seg.steps)
+        encoder = [k for k in parent.state_dict() if k.startswith("image_encoder.")]
+        assert encoder and any(not torch.equal(child.state_dict()[k], parent.state_dict()[k]) for k in encoder)
+        with pytest.raises(FinetuneDataError, match="the policy sees"):  # frames missing: refused by name
+            finetune_policy(parent, {k: v for k, v in arrays.items() if "images" not in k}, arrays, cfg, progress=False)
     finally:
         fleet.stop()  # closes the episode files
     episode = read_episode(next((s.data_dir / "episodes").glob("robot000_*.mcap")), recover=True)
