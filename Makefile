@@ -7,7 +7,7 @@ EXTRAS ?= dev
 comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
-.PHONY: install osmesa demo test lint docs vision-lift vision-cup vision-drawer vision-bundle cameras-docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
+.PHONY: install osmesa demo test lint docs vision-lift vision-cup vision-drawer vision-bundle vision-floor cameras-docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
 	hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-hand-back-docs loop-cooldown-docs asking-dev-docs choice-dev-docs \
 	operator-dev-docs fleet-release-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs clean
@@ -338,6 +338,11 @@ vision-bundle: install
 	for p in $(VISION_TASKS); do rm -rf policies/$$p && mkdir -p policies/$$p && cp runs/$$p-vision/model.safetensors \
 		runs/$$p-vision/config.json runs/$$p-vision/calibration.json policies/$$p/ || exit 1; for s in $(BUNDLED_SIGNALS); do \
 		mkdir -p policies/$$p/signals/$$s && cp runs/$$p-vision/signals/$$s/config.json policies/$$p/signals/$$s/ || exit 1; done; done
+
+# docs/uncertainty.md, "The floor": the oracle's floor (`hitl bench floor`, its default grid, 4-step requests,
+# 20 evaluation episodes) on the bundled lift policy that sees, on lift-hammer
+vision-floor: install
+	$(BIN)/hitl bench floor --tasks lift-hammer --cache runs/bench-floor-vision --json --quiet > docs/results/hitl/floor-vision-lift-hammer.json
 
 # docs/policy.md, "The cameras a policy sees": what rendering them costs per step, and what they show
 cameras-docs: install
