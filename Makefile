@@ -340,9 +340,11 @@ vision-bundle: install
 		mkdir -p policies/$$p/signals/$$s && cp runs/$$p-vision/signals/$$s/config.json policies/$$p/signals/$$s/ || exit 1; done; done
 
 # docs/uncertainty.md, "The floor": the oracle's floor (`hitl bench floor`, its default grid, 4-step requests,
-# 20 evaluation episodes) on the bundled lift policy that sees, on lift-hammer
+# 20 evaluation episodes) on the bundled policies that see, on lift-hammer, open-drawer and cup-stack (about 35 min)
 vision-floor: install
 	$(BIN)/hitl bench floor --tasks lift-hammer --cache runs/bench-floor-vision --json --quiet > docs/results/hitl/floor-vision-lift-hammer.json
+	$(BIN)/hitl bench floor --tasks open-drawer --cache runs/bench-floor-vision --json --quiet > docs/results/hitl/floor-vision-open-drawer.json
+	$(BIN)/hitl bench floor --tasks cup-stack --cache runs/bench-floor-vision --json --quiet > docs/results/hitl/floor-vision-cup-stack.json
 
 # docs/policy.md, "The cameras a policy sees": what rendering them costs per step, and what they show
 cameras-docs: install
