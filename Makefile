@@ -7,7 +7,7 @@ EXTRAS ?= dev
 comma  := ,
 STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
-.PHONY: install osmesa demo test lint docs vision-lift vision-cup vision-drawer vision-bundle vision-floor cameras-docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
+.PHONY: install osmesa demo test lint docs vision-lift vision-cup vision-drawer vision-bundle vision-floor vision-hitl-docs cameras-docs policy-docs signals-docs loop-docs hitl-docs bench-docs default-hitl-docs console-docs frame-docs \
 	hitl-dev-docs object-frame-hitl-docs api-docs finetune-load-docs \
 	resume-docs nights-docs nights-lift-docs operators-docs operators-figure operators-hand-back-docs loop-cooldown-docs asking-dev-docs choice-dev-docs \
 	operator-dev-docs fleet-release-docs fleet-backends-docs fleet-inference-docs segments-docs floor-docs pregrasp-docs clean
@@ -338,6 +338,13 @@ vision-bundle: install
 	for p in $(VISION_TASKS); do rm -rf policies/$$p && mkdir -p policies/$$p && cp runs/$$p-vision/model.safetensors \
 		runs/$$p-vision/config.json runs/$$p-vision/calibration.json policies/$$p/ || exit 1; for s in $(BUNDLED_SIGNALS); do \
 		mkdir -p policies/$$p/signals/$$s && cp runs/$$p-vision/signals/$$s/config.json policies/$$p/signals/$$s/ || exit 1; done; done
+
+# docs/benchmarks/hitl.md, "On the policies that see": the paper's metric at the paper's calibration and the fleet's
+# signal as shipped, each also at the 95% quantile of its reference rollouts, and full teleoperation, on the bundled
+# policies that see (4-step requests, 20 evaluation episodes per task; about 1 h on 2 cores)
+vision-hitl-docs: install
+	$(BIN)/hitl bench hitl --signals denoising choice-stall full-teleop --quantiles 0.95 --report docs/benchmarks/hitl.md \
+		--section vision --figures docs/figures --cache runs/bench-hitl-vision --jobs 2 --json --quiet > docs/results/hitl/vision.json
 
 # docs/uncertainty.md, "The floor": the oracle's floor (`hitl bench floor`, its default grid, 4-step requests,
 # 20 evaluation episodes) on the bundled policies that see, on lift-hammer, open-drawer and cup-stack (about 35 min)

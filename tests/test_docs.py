@@ -345,7 +345,7 @@ def test_hitl_sections_are_what_the_code_writes():
 
     from bench.hitl.docs import markdown
 
-    for name in ("main", "ablations"):
+    for name in ("main", "ablations", "vision"):
         summary = json.loads((RESULTS / "hitl" / f"{name}.json").read_text())
         report, section = _reports(summary["provenance"]["command"])
         page = ROOT / report
