@@ -339,11 +339,11 @@ vision-bundle: install
 		runs/$$p-vision/config.json runs/$$p-vision/calibration.json policies/$$p/ || exit 1; for s in $(BUNDLED_SIGNALS); do \
 		mkdir -p policies/$$p/signals/$$s && cp runs/$$p-vision/signals/$$s/config.json policies/$$p/signals/$$s/ || exit 1; done; done
 
-# docs/benchmarks/hitl.md, "On the policies that see": the paper's metric at the paper's calibration and the fleet's
+# docs/benchmarks/hitl-vision.md (summed up at the top of hitl.md): the paper's metric at the paper's calibration and the fleet's
 # signal as shipped, each also at the 95% quantile of its reference rollouts, and full teleoperation, on the bundled
 # policies that see (4-step requests, 20 evaluation episodes per task; about 1 h on 2 cores)
 vision-hitl-docs: install
-	$(BIN)/hitl bench hitl --signals denoising choice-stall full-teleop --quantiles 0.95 --report docs/benchmarks/hitl.md \
+	$(BIN)/hitl bench hitl --signals denoising choice-stall full-teleop --quantiles 0.95 --report docs/benchmarks/hitl-vision.md \
 		--section vision --figures docs/figures --cache runs/bench-hitl-vision --jobs 2 --json --quiet > docs/results/hitl/vision.json
 
 # docs/uncertainty.md, "The floor": the oracle's floor (`hitl bench floor`, its default grid, 4-step requests,
