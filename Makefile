@@ -42,7 +42,7 @@ demo: install
 
 # two workers, a test file each at a time (its module fixtures, such as a served fleet, built once)
 test: install
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 lint: install
 	$(BIN)/ruff check .

@@ -147,6 +147,12 @@ def fleet_throughput(
 
         threading.Thread(target=operator, daemon=True).start()
         time.sleep(1.0)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # the window opens once the operator's commands reach robot 0
+            with fleet.lock:
+                if fleet.robots[0].latencies:
+                    break
+            time.sleep(0.1)
         with fleet.lock:
             pids = worker_pids(fleet.robots.values())
         # the back end's own processes (a local Ray instance's raylet, GCS and idle workers), not the physics

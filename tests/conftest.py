@@ -16,6 +16,29 @@ def pytest_configure(config):
         torch.set_num_threads(1)
 
 
+# The longest test files (``make test``'s durations), run first: ``--dist loadfile`` hands each worker the next
+# file when it is free, so a long file that comes last in collection order (tests/web sorts last) leaves the
+# other worker idle at the end. Longest first balances the two workers (`make test` passes
+# --no-loadscope-reorder, as xdist would otherwise order files by their number of tests).
+LONGEST_FIRST = (
+    "tests/web/test_console_browser.py",
+    "tests/server/finetune/test_finetune.py",
+    "tests/bench/test_nights.py",
+    "tests/server/test_server_faults.py",
+    "tests/server/test_runtime.py",
+    "tests/server/test_fuzz.py",
+    "tests/bench/test_hitl_service.py",
+    "tests/bench/test_uncertainty.py",
+    "tests/server/test_workers.py",
+    "tests/bench/test_fleet.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {path: i for i, path in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))  # stable: the rest keep order
+
+
 @pytest.fixture(scope="session")
 def task_cache():
     """One simulator per task for the whole session: building one costs seconds."""
