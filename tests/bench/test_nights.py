@@ -77,7 +77,7 @@ def test_days_and_nights_through_the_service_with_a_crash_mid_night(quick_fleet)
     that version, whose signal asks at once, and the report counts it. An admin then promotes the refused
     candidate, its signal's threshold set under every score: day 3 runs on it, and its own signal asks."""
     root, policy = quick_fleet
-    config = quick_config(root, policy)
+    config = quick_config(root, policy, eval_episodes=1, fit_episodes=1)  # one gate seed per task: the plumbing
     plan = NightsPlan(config=config, days=3, day_minutes=3.0, day_episodes=1, data_dir=root / "service", progress=False)
     service = Service(plan, plan.data_dir)
     sessions = service.sessions
