@@ -64,7 +64,7 @@ def test_a_fenced_registry_write_commits_only_under_the_lease(sessions, tmp_path
     b = acquire(s, "job", "b", ttl=30)  # a paused past its ttl, and b took the lease over
     with pytest.raises(LeaseLost):
         registry.register(s, folder, "lift-cube", name="fenced-x", lease=a)
-    with pytest.raises(ServiceError, match="none is registered"):  # nothing written by the fenced-out holder
+    with pytest.raises(ServiceError, match="no policy named 'fenced-x'"):  # the fenced-out holder wrote nothing
         registry.versions(s, "fenced-x")
     row = registry.register(s, folder, "lift-cube", name="fenced-x", lease=b)
     assert row.ref == "fenced-x@1" and 20 < holder(s, "job")[1] <= 30  # written, and the lease renewed
